@@ -1,0 +1,121 @@
+"""Numba CPU backend: autograd Functions around the hand-written kernels."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import _numba_project as P
+from . import _numba_raster as R
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far):
+        C, N = viewmats.shape[0], means.shape[0]
+        dt = means.dtype
+        m, q, s = _np(means), _np(quats), _np(scales)
+        vm = _np(viewmats).astype(np.float64, copy=False)
+        K = _np(Ks).astype(np.float64, copy=False)
+        means2d = torch.empty((C, N, 2), dtype=dt)
+        conics = torch.empty((C, N, 3), dtype=dt)
+        depths = torch.empty((C, N), dtype=dt)
+        radii = torch.empty((C, N, 2), dtype=torch.int32)
+        rects = torch.empty((C, N, 4), dtype=torch.int32)
+        P.project_forward(m, q, s, _np(opacities.reshape(-1, N)), vm, K, float(width), float(height),
+                          float(near), float(far), means2d.numpy(), conics.numpy(), depths.numpy(),
+                          radii.numpy(), rects.numpy())
+        ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii)
+        ctx.size = (width, height)
+        ctx.mark_non_differentiable(radii, rects)
+        return means2d, conics, depths, radii, rects
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, v_depths, _v_radii, _v_rects):
+        means, quats, scales, viewmats, Ks, radii = ctx.saved_tensors
+        width, height = ctx.size
+        C, N = viewmats.shape[0], means.shape[0]
+        dt = means.dtype
+
+        def grad_or_zeros(g, shape):
+            return np.zeros(shape, dtype=dt_np) if g is None else _np(g)
+
+        dt_np = np.float64 if dt == torch.float64 else np.float32
+        v_means = torch.empty((N, 3), dtype=dt)
+        v_quats = torch.empty((N, 4), dtype=dt)
+        v_scales = torch.empty((N, 3), dtype=dt)
+        P.project_backward(_np(means), _np(quats), _np(scales),
+                           _np(viewmats).astype(np.float64, copy=False),
+                           _np(Ks).astype(np.float64, copy=False), float(width), float(height),
+                           radii.numpy(), grad_or_zeros(v_means2d, (C, N, 2)),
+                           grad_or_zeros(v_conics, (C, N, 3)), grad_or_zeros(v_depths, (C, N)),
+                           v_means.numpy(), v_quats.numpy(), v_scales.numpy())
+        return v_means, v_quats, v_scales, None, None, None, None, None, None, None
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, depths, rects, width, height):
+        C = means2d.shape[0]
+        D = colors.shape[2]
+        dt = means2d.dtype
+        tiles_x = (width + R.TILE - 1) // R.TILE
+        tiles_y = (height + R.TILE - 1) // R.TILE
+        d = _np(depths)
+        # Stable sort: equal depths keep index order, so the result is deterministic.
+        order = np.argsort(d, axis=1, kind="stable")
+        r = _np(rects)
+        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = R.bin_gaussians(r, order, tiles_x, tiles_y)
+        out = torch.empty((C, height, width, D), dtype=dt)
+        out_T = torch.empty((C, height, width), dtype=dt)
+        m2, cn, op, col = _np(means2d), _np(conics), _np(opacities), _np(colors)
+        R.composite_forward(m2, cn, op, col, r, tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
+                            out.numpy(), out_T.numpy())
+        if backgrounds is not None:
+            out += out_T[..., None] * backgrounds[:, None, None, :].detach()
+        alphas = (1.0 - out_T)[..., None]
+        ctx.bins = (tile_offsets, tile_gauss, gauss_offsets, gauss_pairs, tiles_x, tiles_y)
+        ctx.size = (width, height)
+        ctx.has_bg = backgrounds is not None
+        ctx.save_for_backward(means2d, conics, colors, opacities, rects, out, out_T)
+        return out, alphas
+
+    @staticmethod
+    def backward(ctx, v_out, v_alphas):
+        means2d, conics, colors, opacities, rects, out, out_T = ctx.saved_tensors
+        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs, tiles_x, tiles_y = ctx.bins
+        width, height = ctx.size
+        C, N = means2d.shape[:2]
+        D = colors.shape[2]
+        dt = means2d.dtype
+        if v_out is None:
+            v_out = torch.zeros_like(out)
+        if v_alphas is None:
+            v_alphas = torch.zeros_like(out_T)[..., None]
+        vo = _np(v_out)
+        pair_grads = np.zeros((tile_gauss.shape[0], D + 6), dtype=vo.dtype)
+        R.composite_backward(_np(means2d), _np(conics), _np(opacities), _np(colors), _np(rects),
+                             tile_offsets, tile_gauss, tiles_x, tiles_y, width, height, out.numpy(),
+                             out_T.numpy(), vo, _np(v_alphas[..., 0]), pair_grads)
+        v_means2d = torch.empty((C, N, 2), dtype=dt)
+        v_conics = torch.empty((C, N, 3), dtype=dt)
+        v_colors = torch.empty(colors.shape, dtype=dt)
+        v_opac = torch.empty(opacities.shape, dtype=dt)
+        R.reduce_pairs(pair_grads, gauss_offsets, gauss_pairs, C, N, D, v_means2d.numpy(), v_conics.numpy(),
+                       v_colors.numpy(), v_opac.numpy())
+        v_bg = None
+        if ctx.has_bg and ctx.needs_input_grad[4]:
+            v_bg = (v_out * out_T[..., None]).sum(dim=(1, 2))
+        return v_means2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None
+
+
+def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far):
+    return _Project.apply(means, quats, scales, opacities, viewmats, Ks, width, height, near, far)
+
+
+def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, width, height):
+    return _Composite.apply(means2d, conics, colors, opacities, backgrounds, depths, rects, width, height)

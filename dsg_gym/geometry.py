@@ -241,7 +241,10 @@ def quat_angle_distance(a: Tensor, b: Tensor) -> Tensor:
 
 
 def se3_from_rt(R: Tensor, t: Tensor) -> Tensor:
-    """Homogeneous ``[[R, t], [0, 0, 0, 1]]``. ``R``: ``[..., 3, 3]``, ``t``: ``[..., 3]`` -> ``[..., 4, 4]``."""
+    """Homogeneous ``[[R, t], [0, 0, 0, 1]]``.
+
+    ``R``: ``[..., 3, 3]``, ``t``: ``[..., 3]`` (broadcast) -> ``[..., 4, 4]``.
+    """
     shape = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
     R = R.expand(*shape, 3, 3)
     t = t.expand(*shape, 3)

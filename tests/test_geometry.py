@@ -130,7 +130,8 @@ def test_compose_with_inverse_is_identity(p, p_other):
     eye = torch.eye(4, dtype=F64)
     assert_close(G.se3_compose(M, G.se3_inverse(M)), eye, atol=1e-12)
     assert_close(G.se3_compose(G.se3_inverse(M), M), eye, atol=1e-12)
-    assert_close(G.se3_inverse(G.se3_compose(M, N)), G.se3_compose(G.se3_inverse(N), G.se3_inverse(M)), atol=1e-10)
+    inv_mn = G.se3_compose(G.se3_inverse(N), G.se3_inverse(M))
+    assert_close(G.se3_inverse(G.se3_compose(M, N)), inv_mn, atol=1e-10)
     assert_close(G.se3_inverse(M), torch.linalg.inv(M), atol=1e-10)
 
 
@@ -253,7 +254,8 @@ def test_look_at():
     # Degenerate: looking straight down along -up still gives a valid camera.
     Vd = G.look_at_viewmat(torch.tensor([0.0, 0, 2], dtype=F64), torch.zeros(3, dtype=F64), up)
     assert G.is_rigid(Vd, atol=1e-12)
-    assert_close(G.transform_points(Vd, torch.zeros(1, 3, dtype=F64))[0], torch.tensor([0, 0, 2.0], dtype=F64))
+    origin_cam = G.transform_points(Vd, torch.zeros(1, 3, dtype=F64))[0]
+    assert_close(origin_cam, torch.tensor([0, 0, 2.0], dtype=F64))
     # Batched with a default up.
     Vb = G.look_at_viewmat(torch.randn(6, 3, dtype=F64) + 3.0, torch.zeros(3, dtype=F64))
     assert Vb.shape == (6, 4, 4) and G.is_rigid(Vb, atol=1e-12).all()
@@ -261,7 +263,7 @@ def test_look_at():
 
 def test_opengl_opencv_conversion():
     gen = torch.Generator().manual_seed(2)
-    p = torch.cat((torch.randn(4, 3, generator=gen, dtype=F64), torch.randn(4, 4, generator=gen, dtype=F64)), -1)
+    p = torch.randn(4, 7, generator=gen, dtype=F64)
     c2w_gl = G.pose7_to_matrix(p)
     V = G.opengl_c2w_to_viewmat(c2w_gl)
     assert G.is_rigid(V, atol=1e-12).all()

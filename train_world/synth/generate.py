@@ -1,0 +1,155 @@
+"""Generate one synthetic dual-state capture on disk (the layout of :mod:`train_world.data.format`).
+
+Determinism: every random choice comes from ``numpy.random.Generator`` streams derived from ``(seed, label)``
+(labels such as ``"states"`` or ``"cameras/state1"``), PNGs are encoded without timestamps and JSON keeps a
+fixed key order, so the same seed (and MuJoCo/Pillow versions, GL driver) gives the same bytes.
+"""
+
+from __future__ import annotations
+
+import os
+import zlib
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from ..data.format import (  # noqa: E402
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    atomic_write_json,
+    encode_png,
+    matrix_to_list,
+    staged_directory,
+    write_state_views,
+)
+from .build import build_scene, set_object_poses  # noqa: E402
+from .cameras import orbit_c2w  # noqa: E402
+from .render import SceneRenderer, depth_to_png_units  # noqa: E402
+from .spec import SceneSpec, resolve_scene  # noqa: E402
+from .states import sample_states, verify_with_mujoco  # noqa: E402
+
+__all__ = ["GENERATOR_VERSION", "GenerateConfig", "generate_scene", "rng_for"]
+
+GENERATOR_VERSION = "1.0"
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """What to generate: image size, training views per training state, held-out test cameras shared by the
+    ``test_states`` test states, whether lights cast shadows."""
+
+    seed: int = 0
+    width: int = 128
+    height: int = 128
+    views: int = 48
+    test_views: int = 12
+    test_states: int = 3
+    shadows: bool = False
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        for k in ("width", "height", "views"):
+            if int(getattr(self, k)) < 1:
+                raise ValueError(f"GenerateConfig.{k} must be >= 1, got {getattr(self, k)}")
+        if self.test_views < 0 or self.test_states < 0:
+            raise ValueError("GenerateConfig.test_views and test_states must be >= 0")
+        if (self.test_states > 0) != (self.test_views > 0):
+            raise ValueError("test states need test views (and vice versa): set both > 0 or both 0")
+
+
+def rng_for(seed: int, label: str) -> np.random.Generator:
+    """Independent, reproducible random stream for one purpose."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, zlib.crc32(label.encode())]))
+
+
+def _shape_dict(shape) -> dict:
+    d = {k: v for k, v in asdict(shape).items() if v not in (0, 0.0, "", (0.0, 0.0, 0.0))}
+    d["type"] = shape.type
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+
+
+def _scene_json(scene: SceneSpec, cfg: GenerateConfig, states: dict[str, np.ndarray],
+                splits: dict[str, str], counts: dict[str, int]) -> dict:
+    (x0, x1), (y0, y1) = scene.table_bounds
+    return {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "name": scene.name,
+        "description": scene.description,
+        "units": "metres",
+        "up_axis": "+z",
+        "generator": {
+            "name": "dsg-synth",
+            "version": GENERATOR_VERSION,
+            "seed": int(cfg.seed),
+            "scene_spec": Path(scene.source).name if scene.source else scene.name,
+            "width": cfg.width,
+            "height": cfg.height,
+            "views": cfg.views,
+            "test_views": cfg.test_views,
+            "test_states": cfg.test_states,
+            "shadows": bool(cfg.shadows),
+            "mujoco_version": mujoco.__version__,
+        },
+        "objects": [{"id": i + 1, "name": o.name, "shape": _shape_dict(o.shape), "rest": o.rest}
+                    for i, o in enumerate(scene.objects)],
+        "table": {"bounds": [[x0, y0, 0.0], [x1, y1, 0.0]], "top_z": 0.0, "kind": scene.surface.kind},
+        "states": {
+            name: {"split": splits[name], "num_views": counts[name],
+                   "object_poses": [{"id": k + 1, "pose": matrix_to_list(p)} for k, p in enumerate(poses)]}
+            for name, poses in states.items()
+        },
+    }
+
+
+def generate_scene(scene: SceneSpec | str, out: str | os.PathLike, config: GenerateConfig = GenerateConfig(),
+                   overwrite: bool = False) -> Path:
+    """Generate ``scene`` (a spec or a default scene name / JSON path) into the folder ``out``.
+
+    Refuses (``FileExistsError``) if ``out`` exists and is not empty unless ``overwrite``. The capture is
+    staged in a hidden sibling folder and renamed into place only when complete.
+    """
+    if isinstance(scene, str):
+        scene = resolve_scene(scene)
+    cfg = config
+    out = Path(out)
+    with staged_directory(out, overwrite=overwrite) as stage:
+        built = build_scene(scene, cfg.width, cfg.height, cfg.shadows)
+        data = mujoco.MjData(built.model)
+        states = sample_states(scene, rng_for(cfg.seed, "states"), cfg.test_states)
+        for name, poses in states.items():
+            verify_with_mujoco(built, data, poses, name)
+        cams: dict[str, np.ndarray] = {}
+        splits: dict[str, str] = {}
+        for i, name in enumerate(("state1", "state2")):
+            cams[name] = orbit_c2w(scene.cameras.train, cfg.views, rng_for(cfg.seed, f"cameras/{name}"),
+                                   azimuth_phase_deg=rng_for(cfg.seed, f"phase/{name}").uniform(0, 360))
+            splits[name] = "train"
+        if cfg.test_states:
+            test_cams = orbit_c2w(scene.cameras.test, cfg.test_views, rng_for(cfg.seed, "cameras/test"))
+            for t in range(cfg.test_states):
+                cams[f"test_{t}"] = test_cams
+                splits[f"test_{t}"] = "test"
+        total = sum(len(c) for c in cams.values())
+        with SceneRenderer(built, cfg.width, cfg.height) as renderer, \
+                tqdm(total=total, desc=f"dsg-synth {scene.name}", unit="view", disable=not cfg.progress) as bar:
+            fx, fy, cx, cy = renderer.intrinsics()
+            for name, c2ws in cams.items():
+                set_object_poses(built, data, states[name])
+                images, masks, depths = [], [], []
+                for c2w in c2ws:
+                    rgb, ids, depth = renderer.render(data, c2w)
+                    images.append(encode_png(rgb))
+                    masks.append(encode_png(ids))
+                    depths.append(encode_png(depth_to_png_units(depth)))
+                    bar.update(1)
+                write_state_views(stage / name, list(c2ws), cfg.width, cfg.height, fx, fy, cx, cy,
+                                  images, masks, depths)
+        atomic_write_json(stage / "scene.json", _scene_json(
+            scene, cfg, states, splits, {k: len(v) for k, v in cams.items()}))
+    return out

@@ -9,6 +9,9 @@ from . import _numba_project as P
 from . import _numba_raster as R
 
 
+_consts = R.make_consts
+
+
 def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
@@ -74,7 +77,7 @@ class _Composite(torch.autograd.Function):
         out_T = torch.empty((C, height, width), dtype=dt)
         m2, cn, op, col = _np(means2d), _np(conics), _np(opacities), _np(colors)
         R.composite_forward(m2, cn, op, col, r, tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
-                            out.numpy(), out_T.numpy())
+                            _consts(m2.dtype), out.numpy(), out_T.numpy())
         if backgrounds is not None:
             out += out_T[..., None] * backgrounds[:, None, None, :].detach()
         alphas = (1.0 - out_T)[..., None]
@@ -99,7 +102,8 @@ class _Composite(torch.autograd.Function):
         vo = _np(v_out)
         pair_grads = np.zeros((tile_gauss.shape[0], D + 6), dtype=vo.dtype)
         R.composite_backward(_np(means2d), _np(conics), _np(opacities), _np(colors), _np(rects),
-                             tile_offsets, tile_gauss, tiles_x, tiles_y, width, height, out.numpy(),
+                             tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
+                             _consts(out.numpy().dtype), out.numpy(),
                              out_T.numpy(), vo, _np(v_alphas[..., 0]), pair_grads)
         v_means2d = torch.empty((C, N, 2), dtype=dt)
         v_conics = torch.empty((C, N, 3), dtype=dt)

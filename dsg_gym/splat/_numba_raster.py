@@ -1,9 +1,10 @@
 """Numba kernels: tile binning and front-to-back alpha compositing, forward and backward.
 
 Work is split into 16x16 pixel tiles processed in parallel (one tile per task, no atomics).
-Inside a tile, Gaussians are visited front to back and each one only touches the pixels of
-its own rectangle (``rects`` from the projection), so the cost is proportional to the area the
-Gaussians really cover, not to ``tiles x list length x 256``.
+Inside a tile, Gaussians are visited front to back and each one only touches, row by row, the
+pixel span where its alpha can reach 1/255 (plus one pixel of margin), so the cost follows the
+area the Gaussians really cover, not ``tiles x list length x 256``. Float32 inputs are
+composited in float32 (constants come in the working dtype from ``make_consts``).
 
 Compositing rule per pixel (identical in forward and backward, so the backward pass replays the
 forward decisions bit for bit):
@@ -34,6 +35,12 @@ ALPHA_MAX = 0.99
 T_MIN = 1e-4
 # No reassociation or contraction: forward and backward must take identical decisions.
 _FASTMATH = {"nsz", "arcp"}
+
+
+def make_consts(dtype) -> np.ndarray:
+    """Constants of the compositing kernels in the working dtype (float32 kernels stay float32):
+    (alpha max, alpha min, T min, 0.5, 1, 0)."""
+    return np.array([ALPHA_MAX, ALPHA_MIN, T_MIN, 0.5, 1.0, 0.0], dtype=dtype)
 
 
 @nb.njit(cache=True)
@@ -95,20 +102,57 @@ def bin_gaussians(rects, order, tiles_x, tiles_y):
     return tile_offsets, tile_gauss, gauss_offsets, gauss_pairs
 
 
+@nb.njit(cache=True, fastmath=True)
+def _dot(a, b, n):
+    """Dot product of two length-n vectors (fast math: vectorised; used on gradients only)."""
+    acc = a[0] * b[0]
+    for d in range(1, n):
+        acc += a[d] * b[d]
+    return acc
+
+
+@nb.njit(cache=True, inline="always")
+def _row_span(ca, cb, cc, u, dy, logo, x0, x1, px0):
+    """Tile-local x range of a row's pixels where alpha can reach 1/255 (1 px margin).
+
+    Solves a dx^2 + 2 b dy dx + c dy^2 <= 2 ln(255 o) for dx in float64 and clips it to the
+    absolute pixel range [x0, x1]; returns lo > hi when the row misses the footprint.
+    """
+    a = np.float64(ca)
+    bdy = np.float64(cb) * dy
+    disc = bdy * bdy - a * (np.float64(cc) * dy * dy - 2.0 * logo)
+    if not (disc >= 0.0) or not (a > 0.0):
+        return 1, 0
+    r = math.sqrt(disc)
+    lo = math.ceil(np.float64(u) - 0.5 + (-bdy - r) / a) - 1.0
+    hi = math.floor(np.float64(u) - 0.5 + (-bdy + r) / a) + 1.0
+    lo = max(lo, np.float64(x0)) - px0
+    hi = min(hi, np.float64(x1)) - px0
+    if hi < lo:
+        return 1, 0
+    return int(lo), int(hi)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss,
-                      tiles_x, tiles_y, width, height, out_colors, out_T):
+                      tiles_x, tiles_y, width, height, consts, out_colors, out_T):
     """Front-to-back compositing.
 
     means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors [Cc,N,D] (Co, Cc in {1, C}),
-    rects [C,N,4]; writes out_colors [C,H,W,D] (without background) and out_T [C,H,W]
-    (final transmittance).
+    rects [C,N,4], consts from ``make_consts``; writes out_colors [C,H,W,D] (without
+    background) and out_T [C,H,W] (final transmittance).
     """
     C = means2d.shape[0]
     D = colors.shape[2]
     Co = opacities.shape[0]
     Cc = colors.shape[0]
     T = tiles_x * tiles_y
+    amax = consts[0]
+    amin = consts[1]
+    tmin = consts[2]
+    half = consts[3]
+    one = consts[4]
+    zero = consts[5]
     for ct in nb.prange(C * T):
         c = ct // T
         t = ct - c * T
@@ -122,6 +166,11 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
         acc = np.zeros((TILE * TILE, D), dtype=out_colors.dtype)
         trans = np.ones(TILE * TILE, dtype=out_colors.dtype)
         done = np.zeros(TILE * TILE, dtype=np.bool_)
+        xc = np.empty(TILE, dtype=out_colors.dtype)
+        yc = np.empty(TILE, dtype=out_colors.dtype)
+        for j in range(TILE):
+            xc[j] = (px0 + j) + 0.5
+            yc[j] = (py0 + j) + 0.5
         ndone = 0
         co = 0 if Co == 1 else c
         cc = 0 if Cc == 1 else c
@@ -131,31 +180,36 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
             g = tile_gauss[s]
             u = means2d[c, g, 0]
             v = means2d[c, g, 1]
-            ca = conics[c, g, 0]
+            ca = conics[c, g, 0] * half
             cb = conics[c, g, 1]
-            cc_ = conics[c, g, 2]
+            cc_ = conics[c, g, 2] * half
             o = opacities[co, g]
-            x0 = max(rects[c, g, 0], px0) - px0
-            x1 = min(rects[c, g, 1], px0 + pw - 1) - px0
+            logo = math.log(np.float64(o) * 255.0)
             y0 = max(rects[c, g, 2], py0) - py0
             y1 = min(rects[c, g, 3], py0 + ph - 1) - py0
+            xr0 = max(rects[c, g, 0], px0)
+            xr1 = min(rects[c, g, 1], px0 + pw - 1)
             col = colors[cc, g]
             for ly in range(y0, y1 + 1):
-                dy = (py0 + ly) + 0.5 - v
+                dy = yc[ly] - v
+                x0, x1 = _row_span(conics[c, g, 0], cb, conics[c, g, 2], u, np.float64(dy), logo,
+                                   xr0, xr1, px0)
+                bdy = cb * dy
+                cdy = cc_ * dy * dy
                 for lx in range(x0, x1 + 1):
                     p = ly * TILE + lx
                     if done[p]:
                         continue
-                    dx = (px0 + lx) + 0.5 - u
-                    sigma = 0.5 * (ca * dx * dx + cc_ * dy * dy) + cb * dx * dy
-                    if sigma < 0.0:
+                    dx = xc[lx] - u
+                    sigma = (ca * dx + bdy) * dx + cdy
+                    if sigma < zero:
                         continue
-                    alpha = min(ALPHA_MAX, o * math.exp(-sigma))
-                    if alpha < ALPHA_MIN:
+                    alpha = min(amax, o * math.exp(-sigma))
+                    if alpha < amin:
                         continue
                     tp = trans[p]
-                    nt = tp * (1.0 - alpha)
-                    if nt < T_MIN:
+                    nt = tp * (one - alpha)
+                    if nt < tmin:
                         done[p] = True
                         ndone += 1
                         continue
@@ -173,20 +227,29 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss,
-                       tiles_x, tiles_y, width, height, out_colors, out_T, v_colors, v_alphas,
-                       pair_grads):
+                       tiles_x, tiles_y, width, height, consts, out_colors, out_T, v_colors,
+                       v_alphas, pair_grads):
     """Per-(tile, Gaussian) gradients.
 
     out_colors [C,H,W,D] are the final colours including background, out_T [C,H,W] the final
     transmittance, v_colors [C,H,W,D] and v_alphas [C,H,W] the incoming gradients. Writes
-    pair_grads [P, D + 6]: (d colour [D], d means2d [2], d conic [3], d opacity).
+    pair_grads [P, D + 6]: (d colour [D], d means2d [2], d conic [3], d opacity); slots of
+    pairs never reached stay as they were (zero-initialise the array).
     """
     C = means2d.shape[0]
     D = colors.shape[2]
     Co = opacities.shape[0]
     Cc = colors.shape[0]
     T = tiles_x * tiles_y
+    amax = consts[0]
+    amin = consts[1]
+    tmin = consts[2]
+    half = consts[3]
+    one = consts[4]
+    zero = consts[5]
     for ct in nb.prange(C * T):
+        if tile_offsets[ct] == tile_offsets[ct + 1]:
+            continue
         c = ct // T
         t = ct - c * T
         ty = t // tiles_x
@@ -196,15 +259,18 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
         pw = min(TILE, width - px0)
         ph = min(TILE, height - py0)
         npix = pw * ph
-        if tile_offsets[ct] == tile_offsets[ct + 1]:
-            continue
         trans = np.ones(TILE * TILE, dtype=out_T.dtype)
         done = np.zeros(TILE * TILE, dtype=np.bool_)
         vpix = np.zeros((TILE * TILE, D), dtype=v_colors.dtype)
-        va = np.zeros(TILE * TILE, dtype=np.float64)
+        va = np.zeros(TILE * TILE, dtype=v_colors.dtype)
         ptot = np.zeros(TILE * TILE, dtype=np.float64)
         pacc = np.zeros(TILE * TILE, dtype=np.float64)
-        gcol = np.zeros(D, dtype=np.float64)
+        gcol = np.zeros(D, dtype=v_colors.dtype)
+        xc = np.empty(TILE, dtype=out_T.dtype)
+        yc = np.empty(TILE, dtype=out_T.dtype)
+        for j in range(TILE):
+            xc[j] = (px0 + j) + 0.5
+            yc[j] = (py0 + j) + 0.5
         for ly in range(ph):
             for lx in range(pw):
                 p = ly * TILE + lx
@@ -213,9 +279,9 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                     vv = v_colors[c, py0 + ly, px0 + lx, d]
                     vpix[p, d] = vv
                     tot += np.float64(vv) * np.float64(out_colors[c, py0 + ly, px0 + lx, d])
-                a = np.float64(v_alphas[c, py0 + ly, px0 + lx])
+                a = v_alphas[c, py0 + ly, px0 + lx]
                 va[p] = a
-                ptot[p] = tot + a * (1.0 - np.float64(out_T[c, py0 + ly, px0 + lx]))
+                ptot[p] = tot + np.float64(a) * (1.0 - np.float64(out_T[c, py0 + ly, px0 + lx]))
         ndone = 0
         co = 0 if Co == 1 else c
         cc = 0 if Cc == 1 else c
@@ -225,14 +291,18 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
             g = tile_gauss[s]
             u = means2d[c, g, 0]
             v = means2d[c, g, 1]
-            ca = conics[c, g, 0]
+            ca = conics[c, g, 0] * half
             cb = conics[c, g, 1]
-            cc_ = conics[c, g, 2]
+            cc_ = conics[c, g, 2] * half
+            ca64 = np.float64(conics[c, g, 0])
+            cb64 = np.float64(cb)
+            cc64 = np.float64(conics[c, g, 2])
             o = opacities[co, g]
-            x0 = max(rects[c, g, 0], px0) - px0
-            x1 = min(rects[c, g, 1], px0 + pw - 1) - px0
+            logo = math.log(np.float64(o) * 255.0)
             y0 = max(rects[c, g, 2], py0) - py0
             y1 = min(rects[c, g, 3], py0 + ph - 1) - py0
+            xr0 = max(rects[c, g, 0], px0)
+            xr1 = min(rects[c, g, 1], px0 + pw - 1)
             col = colors[cc, g]
             gcol[:] = 0.0
             gu = 0.0
@@ -242,44 +312,50 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
             gc = 0.0
             go = 0.0
             for ly in range(y0, y1 + 1):
-                dy = (py0 + ly) + 0.5 - v
+                dy = yc[ly] - v
+                dyd = np.float64(dy)
+                x0, x1 = _row_span(conics[c, g, 0], cb, conics[c, g, 2], u, dyd, logo, xr0, xr1, px0)
+                bdy = cb * dy
+                cdy = cc_ * dy * dy
                 for lx in range(x0, x1 + 1):
                     p = ly * TILE + lx
                     if done[p]:
                         continue
-                    dx = (px0 + lx) + 0.5 - u
-                    sigma = 0.5 * (ca * dx * dx + cc_ * dy * dy) + cb * dx * dy
-                    if sigma < 0.0:
+                    dx = xc[lx] - u
+                    sigma = (ca * dx + bdy) * dx + cdy
+                    if sigma < zero:
                         continue
                     gauss = math.exp(-sigma)
                     raw = o * gauss
-                    alpha = min(ALPHA_MAX, raw)
-                    if alpha < ALPHA_MIN:
+                    alpha = min(amax, raw)
+                    if alpha < amin:
                         continue
                     tp = trans[p]
-                    nt = tp * (1.0 - alpha)
-                    if nt < T_MIN:
+                    nt = tp * (one - alpha)
+                    if nt < tmin:
                         done[p] = True
                         ndone += 1
                         continue
                     w = alpha * tp
                     trans[p] = nt
-                    cv = va[p]
+                    vp = vpix[p]
+                    cv = np.float64(_dot(col, vp, D) + va[p])
                     for d in range(D):
-                        cv += np.float64(col[d]) * np.float64(vpix[p, d])
-                        gcol[d] += w * vpix[p, d]
-                    pp = pacc[p] + w * cv
+                        gcol[d] += w * vp[d]
+                    pp = pacc[p] + np.float64(w) * cv
                     pacc[p] = pp
-                    if raw >= ALPHA_MAX:
+                    if raw >= amax:
                         continue  # clamped alpha: no gradient to sigma or opacity
-                    valpha = tp * cv - (ptot[p] - pp) / (1.0 - alpha)
-                    go += valpha * gauss
-                    vsig = -valpha * alpha
-                    ga += 0.5 * vsig * dx * dx
-                    gb += vsig * dx * dy
-                    gc += 0.5 * vsig * dy * dy
-                    gu -= vsig * (ca * dx + cb * dy)
-                    gv -= vsig * (cb * dx + cc_ * dy)
+                    alpha64 = np.float64(alpha)
+                    valpha = np.float64(tp) * cv - (ptot[p] - pp) / (1.0 - alpha64)
+                    go += valpha * np.float64(gauss)
+                    vsig = -valpha * alpha64
+                    dxd = np.float64(dx)
+                    ga += 0.5 * vsig * dxd * dxd
+                    gb += vsig * dxd * dyd
+                    gc += 0.5 * vsig * dyd * dyd
+                    gu -= vsig * (ca64 * dxd + cb64 * dyd)
+                    gv -= vsig * (cb64 * dxd + cc64 * dyd)
             for d in range(D):
                 pair_grads[s, d] = gcol[d]
             pair_grads[s, D] = gu

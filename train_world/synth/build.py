@@ -74,6 +74,7 @@ class _Builder:
         vis.headlight.ambient = [0.25, 0.25, 0.25]
         vis.headlight.diffuse = [0.35, 0.35, 0.35]
         vis.headlight.specular = [0.0, 0.0, 0.0]
+        vis.quality.shadowsize = 2048
         vis.map.znear = 0.01
         vis.map.zfar = 50.0
         self.ms.stat.extent = 2.0

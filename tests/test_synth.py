@@ -21,7 +21,12 @@ from train_world.synth.cameras import look_at_opengl, orbit_c2w  # noqa: E402
 from train_world.synth.generate import GenerateConfig, generate_scene, rng_for  # noqa: E402
 from train_world.synth.render import SceneRenderer, depth_to_png_units  # noqa: E402
 from train_world.synth.shapes import resting_height, support  # noqa: E402
-from train_world.synth.spec import SpecError, default_scene_names, resolve_scene, scene_from_dict  # noqa: E402
+from train_world.synth.spec import (  # noqa: E402
+    SpecError,
+    default_scene_names,
+    resolve_scene,
+    scene_from_dict,
+)
 from train_world.synth.states import (  # noqa: E402
     StateError,
     check_complementary_visibility,
@@ -51,7 +56,7 @@ def _dilate(m: np.ndarray) -> np.ndarray:
     """3x3 binary dilation."""
     p = np.pad(m, 1)
     h, w = m.shape
-    return np.any([p[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)], axis=0)
+    return np.any([p[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3)], axis=0)
 
 
 def _files(root: Path) -> dict[str, bytes]:
@@ -70,7 +75,11 @@ def test_layout_and_scene_json(tiny_capture, spec):
     assert (x1 - x0, y1 - y0) == pytest.approx(spec.surface.size)
     for name, st in meta["states"].items():
         tj = json.loads((tiny_capture / name / "transforms.json").read_text())
-        assert len(tj["frames"]) == st["num_views"] == (TINY.views if st["split"] == "train" else TINY.test_views)
+        assert (
+            len(tj["frames"])
+            == st["num_views"]
+            == (TINY.views if st["split"] == "train" else TINY.test_views)
+        )
         assert (tj["w"], tj["h"]) == (TINY.width, TINY.height)
         assert tj["fl_x"] == pytest.approx(0.5 * TINY.height / np.tan(np.deg2rad(spec.cameras.fovy_deg) / 2))
         assert tj["camera_angle_x"] == pytest.approx(2 * np.arctan(0.5 * TINY.width / tj["fl_x"]))
@@ -79,14 +88,19 @@ def test_layout_and_scene_json(tiny_capture, spec):
             assert img.mode == "RGB" and img.size == (TINY.width, TINY.height)
             assert Image.open(tiny_capture / name / fr["mask_path"]).mode == "L"
             assert Image.open(tiny_capture / name / fr["depth_path"]).mode == "I;16"
-    assert not [p for p in tiny_capture.parent.iterdir() if p.name.startswith(".")], "staging folder left behind"
+    assert not [
+        p for p in tiny_capture.parent.iterdir() if p.name.startswith(".")
+    ], "staging folder left behind"
 
 
 def test_same_seed_same_bytes_other_seed_differs(tiny_capture, tmp_path):
     again = generate_scene(SCENE, tmp_path / "again", TINY)
     assert _files(again) == _files(tiny_capture)
     other = generate_scene(SCENE, tmp_path / "other", GenerateConfig(**{**TINY.__dict__, "seed": 4}))
-    a, b = json.loads((tiny_capture / "scene.json").read_text()), json.loads((other / "scene.json").read_text())
+    a, b = (
+        json.loads((tiny_capture / "scene.json").read_text()),
+        json.loads((other / "scene.json").read_text()),
+    )
     assert a["states"]["state1"]["object_poses"] != b["states"]["state1"]["object_poses"]
 
 
@@ -97,8 +111,28 @@ def test_refuses_existing_folder_unless_overwrite(tiny_capture, tmp_path):
     with pytest.raises(FileExistsError, match="overwrite"):
         generate_scene(SCENE, out, TINY)
     assert (out / "keep.txt").read_text() == "mine"
-    assert cli.main(["--scene", SCENE, "--out", str(out), "--width", "32", "--height", "32", "--views", "2",
-                     "--test-views", "1", "--test-states", "1", "--quiet"]) == 2
+    assert (
+        cli.main(
+            [
+                "--scene",
+                SCENE,
+                "--out",
+                str(out),
+                "--width",
+                "32",
+                "--height",
+                "32",
+                "--views",
+                "2",
+                "--test-views",
+                "1",
+                "--test-states",
+                "1",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     generate_scene(SCENE, out, TINY, overwrite=True)
     assert not (out / "keep.txt").exists() and _files(out) == _files(tiny_capture)
 
@@ -118,8 +152,30 @@ def test_cli_list_and_generate(tmp_path, capsys):
     listed = capsys.readouterr().out
     assert all(n in listed for n in default_scene_names())
     out = tmp_path / "c"
-    assert cli.main(["--scene", "two_blocks", "--out", str(out), "--width", "24", "--height", "16", "--views",
-                     "3", "--test-views", "2", "--test-states", "2", "--seed", "5", "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                "--scene",
+                "two_blocks",
+                "--out",
+                str(out),
+                "--width",
+                "24",
+                "--height",
+                "16",
+                "--views",
+                "3",
+                "--test-views",
+                "2",
+                "--test-states",
+                "2",
+                "--seed",
+                "5",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     meta = json.loads((out / "scene.json").read_text())
     assert sorted(meta["states"]) == ["state1", "state2", "test_0", "test_1"]
     assert Image.open(out / "state2" / "images" / "0002.png").size == (24, 16)
@@ -129,8 +185,9 @@ def test_cli_list_and_generate(tmp_path, capsys):
 
 # ------------------------------------------------------------------------------------------- geometry
 def test_depth_reprojects_onto_the_table_and_known_points(tiny_capture):
-    """Cameras + depth round trip: pixel centres (u+.5, v+.5) back-projected with depth land on the table plane
-    z = 0, and known 3D points (box top centres, table points) project onto pixels whose depth matches."""
+    """Cameras + depth round trip: pixel centres (u+.5, v+.5) back-projected with depth land on the table
+    plane z = 0, and known 3D points (box top centres, table points) project onto pixels whose depth
+    matches."""
     cap = load_capture(tiny_capture)
     meta = json.loads((tiny_capture / "scene.json").read_text())
     (x0, y0, _), (x1, y1, _) = meta["table"]["bounds"]
@@ -141,13 +198,22 @@ def test_depth_reprojects_onto_the_table_and_known_points(tiny_capture):
             K = views.Ks[i].double().numpy()
             depth = views.depths[i].numpy().astype(np.float64)
             mask = views.masks[i].numpy()
-            v, u = np.mgrid[0:views.height, 0:views.width]
-            rays = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], np.ones_like(depth)], -1)
+            v, u = np.mgrid[0 : views.height, 0 : views.width]
+            rays = np.stack(
+                [(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], np.ones_like(depth)], -1
+            )
             pc = rays * depth[..., None]
             pw = (pc - vm[:3, 3]) @ vm[:3, :3]  # R^T (pc - t)
             # not next to an object (antialiased edges) and inside the table top
-            table = (~_dilate(mask > 0) & (depth > 0) & (pw[..., 0] > x0 + 0.02) & (pw[..., 0] < x1 - 0.02)
-                     & (pw[..., 1] > y0 + 0.02) & (pw[..., 1] < y1 - 0.02) & (np.abs(pw[..., 2]) < 0.1))
+            table = (
+                ~_dilate(mask > 0)
+                & (depth > 0)
+                & (pw[..., 0] > x0 + 0.02)
+                & (pw[..., 0] < x1 - 0.02)
+                & (pw[..., 1] > y0 + 0.02)
+                & (pw[..., 1] < y1 - 0.02)
+                & (np.abs(pw[..., 2]) < 0.1)
+            )
             n_table += int(table.sum())
             assert np.abs(pw[..., 2][table]).max() < 2.5e-3, (name, i)
             # known table point at the centre of a pixel seen as table: project it back onto that pixel
@@ -183,7 +249,10 @@ def test_renderer_pixel_centre_convention_is_exact():
     clear = ~_dilate(ids > 0)
     errs = {}
     for off in (0.0, 0.5):
-        pc = np.stack([(u + off - cx) / fx, -(v + off - cy) / fy, -np.ones_like(u, dtype=float)], -1) * depth[..., None]
+        pc = (
+            np.stack([(u + off - cx) / fx, -(v + off - cy) / fy, -np.ones_like(u, dtype=float)], -1)
+            * depth[..., None]
+        )
         pw = pc @ c2w[:3, :3].T + c2w[:3, 3]
         # table top pixels (the floor under the table is visible too: drop it by height)
         sel = clear & (np.abs(pw[..., 0]) < 0.3) & (np.abs(pw[..., 1]) < 0.2) & (np.abs(pw[..., 2]) < 0.1)
@@ -210,7 +279,7 @@ def test_masks_agree_with_mujoco_segmentation(tiny_capture, spec):
             pose = np.asarray(entry["pose"])
             q = np.zeros(4)
             mujoco.mju_mat2Quat(q, pose[:3, :3].ravel())
-            data.qpos[adr:adr + 7] = np.concatenate([pose[:3, 3], q])
+            data.qpos[adr : adr + 7] = np.concatenate([pose[:3, 3], q])
         mujoco.mj_forward(model, data)
         tj = json.loads((tiny_capture / name / "transforms.json").read_text())
         for fr in tj["frames"]:
@@ -235,7 +304,10 @@ def test_masks_agree_with_mujoco_segmentation(tiny_capture, spec):
 def test_depth_png_units():
     mm = depth_to_png_units(np.array([[0.0, 0.0004, 0.0006, 1.2345], [np.nan, np.inf, 65.535, 70.0]]))
     assert mm.dtype == np.uint16
-    assert mm.tolist() == [[0, 0, 1, 1234], [0, 0, 65535, 0]] or mm.tolist() == [[0, 0, 1, 1235], [0, 0, 65535, 0]]
+    assert mm.tolist() == [[0, 0, 1, 1234], [0, 0, 65535, 0]] or mm.tolist() == [
+        [0, 0, 1, 1235],
+        [0, 0, 65535, 0],
+    ]
 
 
 # ------------------------------------------------------------------------------------------- states
@@ -246,7 +318,9 @@ def test_generated_states_are_valid_and_complementary(tiny_capture, spec):
     for name, poses in cap.poses.items():
         check_state(spec, poses, name)
         verify_with_mujoco(built, data, poses, name)
-        lows = [poses[k, 2, 3] - resting_height(o.shape, poses[k, :3, :3]) for k, o in enumerate(spec.objects)]
+        lows = [
+            poses[k, 2, 3] - resting_height(o.shape, poses[k, :3, :3]) for k, o in enumerate(spec.objects)
+        ]
         np.testing.assert_allclose(lows, 0.0, atol=1e-9)
     check_complementary_visibility(spec, cap.poses["state1"], cap.poses["state2"])
     moved = np.linalg.norm(cap.poses["state1"][:, :2, 3] - cap.poses["state2"][:, :2, 3], axis=1)
@@ -343,10 +417,17 @@ def test_spec_errors_name_the_file_and_field(tmp_path):
 
 def test_impossible_scene_is_reported():
     spec = resolve_scene("two_blocks")
-    crowded = scene_from_dict({"name": "crowded", "surface": {"size": [0.2, 0.2]},
-                               "objects": [{"name": f"b{i}", "shape": {"type": "box", "extents": [0.1, 0.1, 0.1]}}
-                                           for i in range(3)],
-                               "placement": {"max_tries": 20}}, "crowded.json")
+    crowded = scene_from_dict(
+        {
+            "name": "crowded",
+            "surface": {"size": [0.2, 0.2]},
+            "objects": [
+                {"name": f"b{i}", "shape": {"type": "box", "extents": [0.1, 0.1, 0.1]}} for i in range(3)
+            ],
+            "placement": {"max_tries": 20},
+        },
+        "crowded.json",
+    )
     assert spec.objects
     with pytest.raises(StateError, match="crowded"):
         sample_states(crowded, rng_for(0, "states"), 0, max_restarts=3)
@@ -373,8 +454,9 @@ def test_orbit_is_smooth():
     c = orbit_c2w(resolve_scene(SCENE).cameras.train, 48, np.random.default_rng(0))
     steps = np.linalg.norm(np.diff(c[:, :3, 3], axis=0), axis=1)
     assert steps.max() < 2.0 * np.median(steps)  # no jumps
-    np.testing.assert_allclose(c[:, :3, :3].transpose(0, 2, 1) @ c[:, :3, :3], np.broadcast_to(np.eye(3), (48, 3, 3)),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        c[:, :3, :3].transpose(0, 2, 1) @ c[:, :3, :3], np.broadcast_to(np.eye(3), (48, 3, 3)), atol=1e-12
+    )
 
 
 def test_shadows_flag(spec):

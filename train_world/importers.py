@@ -41,13 +41,28 @@ from .data.loader import CaptureError
 __all__ = ["import_llff", "import_transforms", "llff_to_opengl_c2w", "main"]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
-_INTRINSIC_KEYS = ("camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",
-                   "camera_angle_x", "camera_angle_y")
+_INTRINSIC_KEYS = (
+    "camera_model",
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "w",
+    "h",
+    "k1",
+    "k2",
+    "k3",
+    "k4",
+    "p1",
+    "p2",
+    "camera_angle_x",
+    "camera_angle_y",
+)
 
 
 def llff_to_opengl_c2w(poses: np.ndarray) -> np.ndarray:
-    """LLFF ``[N,3,4]`` (or ``[N,3,5]``) camera-to-world with ``[down, right, back]`` axes -> ``[N,4,4]`` OpenGL
-    camera-to-world (``[right, up, back]``)."""
+    """LLFF ``[N,3,4]`` (or ``[N,3,5]``) camera-to-world with ``[down, right, back]`` axes -> ``[N,4,4]``
+    OpenGL camera-to-world (``[right, up, back]``)."""
     p = np.asarray(poses, dtype=np.float64)
     out = np.tile(np.eye(4), (p.shape[0], 1, 1))
     out[:, :3, 0] = p[:, :3, 1]
@@ -57,10 +72,19 @@ def llff_to_opengl_c2w(poses: np.ndarray) -> np.ndarray:
     return out
 
 
+def _rigid(mat: np.ndarray, what: str) -> np.ndarray:
+    try:
+        return check_rigid(mat, what)
+    except ValueError as e:
+        raise CaptureError(str(e)) from e
+
+
 def _list_images(folder: Path) -> list[Path]:
     if not folder.is_dir():
         raise CaptureError(f"{folder}: image folder not found")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and not p.name.startswith("."))
+    files = sorted(
+        p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and not p.name.startswith(".")
+    )
     if not files:
         raise CaptureError(f"{folder}: no images ({', '.join(IMAGE_EXTS)})")
     return files
@@ -78,8 +102,10 @@ def _binary_mask(path: Path, size: tuple[int, int], image: Path, threshold: int)
     try:
         with Image.open(path) as im:
             if im.size != size:
-                raise CaptureError(f"{path}: mask is {im.width}x{im.height} but image {image.name} is "
-                                   f"{size[0]}x{size[1]} (image/mask size mismatch)")
+                raise CaptureError(
+                    f"{path}: mask is {im.width}x{im.height} but image {image.name} is "
+                    f"{size[0]}x{size[1]} (image/mask size mismatch)"
+                )
             grey = np.asarray(im.convert("L"))
     except CaptureError:
         raise
@@ -96,8 +122,14 @@ def _find_mask(folder: Path, stem: str) -> Path:
     raise CaptureError(f"{folder}: no mask for image {stem!r} (expected {stem}.png or .jpg)")
 
 
-def _write_capture(out: Path, name: str, source: dict, header: dict, frames: list[tuple[str, Path, np.ndarray,
-                   np.ndarray | None, dict]], overwrite: bool) -> Path:
+def _write_capture(
+    out: Path,
+    name: str,
+    source: dict,
+    header: dict,
+    frames: list[tuple[str, Path, np.ndarray, np.ndarray | None, dict]],
+    overwrite: bool,
+) -> Path:
     """frames: (stem, source image, c2w_gl, mask or None, extra frame keys)."""
     with staged_directory(out, overwrite=overwrite) as stage:
         st = stage / "state1"
@@ -113,21 +145,35 @@ def _write_capture(out: Path, name: str, source: dict, header: dict, frames: lis
             entry.update(extra)
             entries.append(entry)
         atomic_write_json(st / "transforms.json", {**header, "frames": entries})
-        atomic_write_json(stage / "scene.json", {
-            "format": FORMAT_NAME,
-            "format_version": FORMAT_VERSION,
-            "name": name,
-            "units": "source units (COLMAP/LLFF scale, not metres)",
-            "source": source,
-            "objects": [{"id": 1, "name": "object"}],
-            "states": {"state1": {"split": "train", "num_views": len(entries),
-                                  "object_poses": [{"id": 1, "pose": matrix_to_list(np.eye(4))}]}},
-        })
+        atomic_write_json(
+            stage / "scene.json",
+            {
+                "format": FORMAT_NAME,
+                "format_version": FORMAT_VERSION,
+                "name": name,
+                "units": "source units (COLMAP/LLFF scale, not metres)",
+                "source": source,
+                "objects": [{"id": 1, "name": "object"}],
+                "states": {
+                    "state1": {
+                        "split": "train",
+                        "num_views": len(entries),
+                        "object_poses": [{"id": 1, "pose": matrix_to_list(np.eye(4))}],
+                    }
+                },
+            },
+        )
     return out
 
 
-def import_llff(src: str | Path, out: str | Path, factor: int = 8, threshold: int = 127, masks: bool = True,
-                overwrite: bool = False) -> Path:
+def import_llff(
+    src: str | Path,
+    out: str | Path,
+    factor: int = 8,
+    threshold: int = 127,
+    masks: bool = True,
+    overwrite: bool = False,
+) -> Path:
     """Convert an LLFF capture at ``src`` (``images_{factor}``/``masks_{factor}``; factor 1 = ``images``) to
     our layout at ``out``. Returns ``out``."""
     src = Path(src)
@@ -145,12 +191,14 @@ def import_llff(src: str | Path, out: str | Path, factor: int = 8, threshold: in
         raise CaptureError(f"{pb_path}: non-finite values")
     images = _list_images(src / f"images{suffix}")
     if len(images) != pb.shape[0]:
-        raise CaptureError(f"{pb_path}: camera count mismatch: {pb.shape[0]} poses but {len(images)} images in "
-                           f"{src / f'images{suffix}'}")
+        raise CaptureError(
+            f"{pb_path}: camera count mismatch: {pb.shape[0]} poses but {len(images)} images in "
+            f"{src / f'images{suffix}'}"
+        )
     poses = pb[:, :15].reshape(-1, 3, 5)
     c2w = llff_to_opengl_c2w(poses)
     for i in range(len(c2w)):
-        check_rigid(c2w[i], f"{pb_path}: row {i} ({images[i].name})")
+        _rigid(c2w[i], f"{pb_path}: row {i} ({images[i].name})")
     hh, ww, ff = poses[0, :, 4]
     if not np.allclose(poses[:, :, 4], poses[:1, :, 4]):
         raise CaptureError(f"{pb_path}: images have different hwf; only one camera is supported")
@@ -162,8 +210,9 @@ def import_llff(src: str | Path, out: str | Path, factor: int = 8, threshold: in
                 raise CaptureError(f"{p}: image is {im.width}x{im.height} but {images[0].name} is {w}x{h}")
     sx, sy = w / ww, h / hh
     if abs(sx - sy) > 0.01 * max(sx, sy):
-        raise CaptureError(f"{images[0]}: image size {w}x{h} is not a uniform scaling of the poses' "
-                           f"{int(ww)}x{int(hh)}")
+        raise CaptureError(
+            f"{images[0]}: image size {w}x{h} is not a uniform scaling of the poses' " f"{int(ww)}x{int(hh)}"
+        )
     f = float(ff) * sx
     mask_dir = src / f"masks{suffix}"
     use_masks = masks and mask_dir.is_dir()
@@ -173,13 +222,23 @@ def import_llff(src: str | Path, out: str | Path, factor: int = 8, threshold: in
         frames.append((img.stem, img, c2w[i], m, {"near_far": [float(pb[i, 15]), float(pb[i, 16])]}))
     header = transforms_header(w, h, f, f, w / 2.0, h / 2.0)
     header.pop("depth_unit_scale_factor")
-    source = {"kind": "llff", "folder": src.name, "factor": int(factor), "threshold": int(threshold),
-              "full_resolution_hwf": [float(hh), float(ww), float(ff)]}
+    source = {
+        "kind": "llff",
+        "folder": src.name,
+        "factor": int(factor),
+        "threshold": int(threshold),
+        "full_resolution_hwf": [float(hh), float(ww), float(ff)],
+    }
     return _write_capture(Path(out), src.name, source, header, frames, overwrite)
 
 
-def import_transforms(src: str | Path, out: str | Path, masks_dir: str | Path | None = None,
-                      threshold: int = 127, overwrite: bool = False) -> Path:
+def import_transforms(
+    src: str | Path,
+    out: str | Path,
+    masks_dir: str | Path | None = None,
+    threshold: int = 127,
+    overwrite: bool = False,
+) -> Path:
     """Convert a capture described by ``src/transforms.json`` (nerfstudio / COLMAP-processed; camera-to-world
     OpenGL ``transform_matrix``) into our layout at ``out``."""
     src = Path(src)
@@ -202,7 +261,11 @@ def import_transforms(src: str | Path, out: str | Path, masks_dir: str | Path | 
             img = img.with_name(img.name + ".png")
         if not img.is_file():
             raise CaptureError(f"{img}: image file not found ({where})")
-        c2w = check_rigid(np.asarray(fr["transform_matrix"], dtype=np.float64), f"{where}.transform_matrix")
+        try:
+            mat = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise CaptureError(f"{where}.transform_matrix: not a 4x4 matrix of numbers ({e})") from e
+        c2w = _rigid(mat, f"{where}.transform_matrix")
         stem = img.stem if img.stem not in seen else f"{i:05d}_{img.stem}"
         seen.add(stem)
         with Image.open(img) as im:
@@ -222,14 +285,16 @@ def import_transforms(src: str | Path, out: str | Path, masks_dir: str | Path | 
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dsg-import", description=__doc__.split("\n\n")[0] + " See README "
-                                "'Capture format on disk'.")
+    p = argparse.ArgumentParser(
+        prog="dsg-import", description=__doc__.split("\n\n")[0] + " See README " "'Capture format on disk'."
+    )
     sub = p.add_subparsers(dest="kind", required=True)
     a = sub.add_parser("llff", help="LLFF capture: poses_bounds.npy + images[_F]/ (+ masks[_F]/)")
     a.add_argument("src", type=Path, help="LLFF folder")
     a.add_argument("--out", type=Path, required=True, help="output capture folder")
-    a.add_argument("--factor", type=int, default=8, help="use images_F/ and masks_F/ (1: images/, masks/); "
-                   "default 8")
+    a.add_argument(
+        "--factor", type=int, default=8, help="use images_F/ and masks_F/ (1: images/, masks/); " "default 8"
+    )
     a.add_argument("--threshold", type=int, default=127, help="mask pixels > threshold are the object")
     a.add_argument("--no-masks", action="store_true", help="ignore masks even if present")
     a.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
@@ -246,7 +311,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         if args.kind == "llff":
-            out = import_llff(args.src, args.out, args.factor, args.threshold, not args.no_masks, args.overwrite)
+            out = import_llff(
+                args.src, args.out, args.factor, args.threshold, not args.no_masks, args.overwrite
+            )
         else:
             out = import_transforms(args.src, args.out, args.masks, args.threshold, args.overwrite)
     except (ValueError, FileExistsError) as e:

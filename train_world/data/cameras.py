@@ -4,10 +4,11 @@ On disk (``transforms.json``, NeRF-Blender / nerfstudio style) each frame has a 
 camera-to-world matrix in **OpenGL camera axes** (x right, y up, the camera looks down -z).
 
 The renderer (``dsg_gym.splat``) takes **OpenCV** cameras: x right, y down, z forward; ``viewmats`` are
-world-to-camera ``[V,4,4]`` and ``Ks`` are ``[V,3,3]`` pinhole intrinsics whose principal point is in continuous
-pixel coordinates where pixel ``(u, v)`` covers ``[u, u+1) x [v, v+1)`` (centre at ``(u+0.5, v+0.5)``). With a
-symmetric frustum ``cx = w/2, cy = h/2``. MuJoCo's offscreen renderer follows exactly this convention (checked by
-``tests/test_synth.py`` reprojecting depth maps), with ``fx = fy = 0.5 * h / tan(fovy / 2)``.
+world-to-camera ``[V,4,4]`` and ``Ks`` are ``[V,3,3]`` pinhole intrinsics whose principal point is in
+continuous pixel coordinates where pixel ``(u, v)`` covers ``[u, u+1) x [v, v+1)`` (centre at ``(u+0.5,
+v+0.5)``). With a symmetric frustum ``cx = w/2, cy = h/2``. MuJoCo's offscreen renderer follows exactly this
+convention (checked by ``tests/test_synth.py`` reprojecting depth maps), with ``fx = fy = 0.5 * h / tan(fovy /
+2)``.
 
 Going from one to the other flips the camera's y and z axes: ``c2w_cv = c2w_gl @ diag(1, -1, -1, 1)``.
 """
@@ -25,7 +26,8 @@ __all__ = [
     "viewmat_to_opengl_c2w",
 ]
 
-#: Right-multiplying an OpenGL camera-to-world matrix by this gives the OpenCV camera-to-world matrix (and back).
+#  Right-multiplying an OpenGL camera-to-world matrix by this gives the OpenCV camera-to-world matrix (and
+# back).
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -35,12 +37,14 @@ def focal_from_fov(fov_rad: float, size_px: float) -> float:
 
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
-    """3x3 pinhole matrix (float64); ``cx, cy`` in the pixel-centre-at-+0.5 convention of the module docstring."""
+    """3x3 pinhole matrix (float64); ``cx, cy`` in the pixel-centre-at-+0.5 convention of the module
+    docstring."""
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
 
 
 def rigidity_error(mat: np.ndarray) -> float:
-    """How far a 4x4 (or [...,4,4]) matrix is from a rigid transform (max abs deviation, inf if non-finite)."""
+    """How far a 4x4 (or [...,4,4]) matrix is from a rigid transform (max abs deviation, inf if
+    non-finite)."""
     m = np.asarray(mat, dtype=np.float64)
     if not np.all(np.isfinite(m)):
         return float("inf")
@@ -52,9 +56,11 @@ def rigidity_error(mat: np.ndarray) -> float:
 
 
 def check_rigid(mat: np.ndarray, what: str, tol: float = 1e-4) -> np.ndarray:
-    """Return ``mat`` as float64 [...,4,4] or raise ``ValueError`` naming ``what`` if it is not a rigid transform.
+    """Return ``mat`` as float64 [...,4,4] or raise ``ValueError`` naming ``what`` if it is not a rigid
+    transform.
 
-    Rigid means finite, rotation block orthonormal with determinant +1 (within ``tol``) and last row ``0 0 0 1``.
+    Rigid means finite, rotation block orthonormal with determinant +1 (within ``tol``) and last row ``0 0 0
+    1``.
     """
     m = np.asarray(mat, dtype=np.float64)
     if m.shape[-2:] != (4, 4):
@@ -63,8 +69,10 @@ def check_rigid(mat: np.ndarray, what: str, tol: float = 1e-4) -> np.ndarray:
         raise ValueError(f"{what}: matrix has non-finite entries")
     err = rigidity_error(m)
     if err > tol:
-        raise ValueError(f"{what}: not a rigid transform (rotation not orthonormal with det +1, or last row not "
-                         f"0 0 0 1; deviation {err:.3g} > {tol:g})")
+        raise ValueError(
+            f"{what}: not a rigid transform (rotation not orthonormal with det +1, or last row not "
+            f"0 0 0 1; deviation {err:.3g} > {tol:g})"
+        )
     return m
 
 

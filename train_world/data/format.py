@@ -47,7 +47,8 @@ PNG_COMPRESS_LEVEL = 1
 
 
 def encode_png(array: np.ndarray, compress_level: int = PNG_COMPRESS_LEVEL) -> bytes:
-    """Encode uint8 [H,W,3] (RGB), uint8 [H,W] (grey/ids) or uint16 [H,W] (depth) as PNG bytes, deterministically."""
+    """Encode uint8 [H,W,3] (RGB), uint8 [H,W] (grey/ids) or uint16 [H,W] (depth) as PNG bytes,
+    deterministically."""
     a = np.ascontiguousarray(array)
     if a.dtype == np.uint16 and a.ndim == 2:
         img = Image.fromarray(a.astype("<u2", copy=False))  # mode I;16
@@ -85,8 +86,8 @@ def atomic_write_json(path: str | os.PathLike, obj: object) -> None:
 def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Yield an empty hidden sibling folder of ``out``; on success it is renamed to ``out``.
 
-    Refuses (``FileExistsError``) when ``out`` exists and is not empty, unless ``overwrite``. On error the staged
-    folder is removed and ``out`` is left untouched.
+    Refuses (``FileExistsError``) when ``out`` exists and is not empty, unless ``overwrite``. On error the
+    staged folder is removed and ``out`` is left untouched.
     """
     out = Path(out).absolute()
     if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
@@ -111,7 +112,8 @@ def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterato
 
 
 def transforms_header(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> dict:
-    """Global intrinsics block of a ``transforms.json`` (nerfstudio keys plus Blender's ``camera_angle_x``)."""
+    """Global intrinsics block of a ``transforms.json`` (nerfstudio keys plus Blender's
+    ``camera_angle_x``)."""
     return {
         "camera_model": "OPENCV",
         "w": int(width),
@@ -127,12 +129,13 @@ def transforms_header(width: int, height: int, fx: float, fy: float, cx: float, 
         "camera_angle_x": float(2.0 * np.arctan(0.5 * width / fx)),
         "camera_angle_y": float(2.0 * np.arctan(0.5 * height / fy)),
         "depth_unit_scale_factor": DEPTH_SCALE,
-        "camera_convention": "transform_matrix is camera-to-world with OpenGL camera axes (x right, y up, looks -z)",
+        "camera_convention": "transform_matrix: camera-to-world, OpenGL axes (x right, y up, looks -z)",
     }
 
 
-def frame_entry(file_path: str, c2w_gl: np.ndarray, mask_path: str | None = None,
-                depth_path: str | None = None) -> dict:
+def frame_entry(
+    file_path: str, c2w_gl: np.ndarray, mask_path: str | None = None, depth_path: str | None = None
+) -> dict:
     """One ``frames`` entry; paths are relative to the folder holding ``transforms.json``."""
     entry: dict = {"file_path": file_path}
     if mask_path is not None:
@@ -153,9 +156,19 @@ def view_file_stem(index: int, count: int) -> str:
     return f"{index:0{max(4, len(str(max(count - 1, 0))))}d}"
 
 
-def write_state_views(state_dir: Path, c2w_gl: Sequence[np.ndarray], width: int, height: int,
-                      fx: float, fy: float, cx: float, cy: float, images: Sequence[bytes],
-                      masks: Sequence[bytes] | None = None, depths: Sequence[bytes] | None = None) -> None:
+def write_state_views(
+    state_dir: Path,
+    c2w_gl: Sequence[np.ndarray],
+    width: int,
+    height: int,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    images: Sequence[bytes],
+    masks: Sequence[bytes] | None = None,
+    depths: Sequence[bytes] | None = None,
+) -> None:
     """Write one state's encoded PNGs plus its ``transforms.json`` under ``state_dir``."""
     n = len(c2w_gl)
     frames = []

@@ -6,9 +6,9 @@ nerfstudio's or NeRF-Blender's); :func:`load_capture` reads a whole capture; :fu
 NeRF-Blender split (RGBA composited over a background colour).
 
 Cameras come out in the renderer's convention: OpenCV axes (x right, y down, z forward), ``viewmats`` are
-world-to-camera ``[V,4,4]``, ``Ks`` ``[V,3,3]`` with pixel ``(u, v)`` centred at ``(u + 0.5, v + 0.5)``. Object
-poses are world-from-object 4x4 float64 matrices; :meth:`Capture.relative_transform` gives
-``T_src->dst = P_dst @ inv(P_src)`` so that ``x_dst = T @ x_src`` for points on the object.
+world-to-camera ``[V,4,4]``, ``Ks`` ``[V,3,3]`` with pixel ``(u, v)`` centred at ``(u + 0.5, v + 0.5)``.
+Object poses are world-from-object 4x4 float64 matrices; :meth:`Capture.relative_transform` gives ``T_src->dst
+= P_dst @ inv(P_src)`` so that ``x_dst = T @ x_src`` for points on the object.
 
 Bad input raises :class:`CaptureError` (a ``ValueError``) naming the file and the problem.
 """
@@ -43,10 +43,10 @@ class CaptureError(ValueError):
 class Views:
     """The views of one state.
 
-    ``images`` float32 ``[V,H,W,3]`` in [0,1]; ``masks`` uint8 ``[V,H,W]`` object ids (0 = background) or None;
-    ``depths`` float32 ``[V,H,W]`` metres along the optical axis (0 = unknown) or None; ``viewmats`` float32
-    ``[V,4,4]`` OpenCV world-to-camera; ``Ks`` float32 ``[V,3,3]``; ``c2w_opengl`` float64 ``[V,4,4]`` the
-    ``transform_matrix`` values as read (camera-to-world, OpenGL axes).
+    ``images`` float32 ``[V,H,W,3]`` in [0,1]; ``masks`` uint8 ``[V,H,W]`` object ids (0 = background) or
+    None; ``depths`` float32 ``[V,H,W]`` metres along the optical axis (0 = unknown) or None; ``viewmats``
+    float32 ``[V,4,4]`` OpenCV world-to-camera; ``Ks`` float32 ``[V,3,3]``; ``c2w_opengl`` float64 ``[V,4,4]``
+    the ``transform_matrix`` values as read (camera-to-world, OpenGL axes).
     """
 
     images: torch.Tensor
@@ -114,7 +114,9 @@ class Capture:
             return np.linalg.inv(self.supplied_transforms[(dst, src)])
         if src == dst:
             return np.tile(np.eye(4), (len(self.objects), 1, 1))
-        raise KeyError(f"{self.root / 'scene.json'}: no object poses or relative transforms for {src!r} -> {dst!r}")
+        raise KeyError(
+            f"{self.root / 'scene.json'}: no object poses or relative transforms for {src!r} -> {dst!r}"
+        )
 
 
 # --------------------------------------------------------------------------------------------- files
@@ -159,12 +161,20 @@ def _read_rgb(path: Path, background: Sequence[float], downscale: int) -> tuple[
 
 def _check_size(img: Image.Image, path: Path, what: str, image_path: Path, full: tuple[int, int]) -> None:
     if img.size != full:
-        raise CaptureError(f"{path}: {what} is {img.width}x{img.height} but its image {image_path.name} is "
-                           f"{full[0]}x{full[1]} (image/{what} size mismatch)")
+        raise CaptureError(
+            f"{path}: {what} is {img.width}x{img.height} but its image {image_path.name} is "
+            f"{full[0]}x{full[1]} (image/{what} size mismatch)"
+        )
 
 
-def _read_mask(path: Path, image_path: Path, full: tuple[int, int], size: tuple[int, int], downscale: int,
-               valid_ids: np.ndarray | None) -> np.ndarray:
+def _read_mask(
+    path: Path,
+    image_path: Path,
+    full: tuple[int, int],
+    size: tuple[int, int],
+    downscale: int,
+    valid_ids: np.ndarray | None,
+) -> np.ndarray:
     img = _open_image(path, "mask")
     _check_size(img, path, "mask", image_path, full)
     if img.mode in ("RGB", "RGBA"):
@@ -188,13 +198,16 @@ def _read_mask(path: Path, image_path: Path, full: tuple[int, int], size: tuple[
         present = np.unique(m)
         bad = np.setdiff1d(present, np.append(valid_ids, 0))
         if bad.size:
-            raise CaptureError(f"{path}: mask contains ids {bad.tolist()} that are not objects in scene.json "
-                               f"(known ids: {sorted(int(i) for i in valid_ids)}; 0 = background)")
+            raise CaptureError(
+                f"{path}: mask contains ids {bad.tolist()} that are not objects in scene.json "
+                f"(known ids: {sorted(int(i) for i in valid_ids)}; 0 = background)"
+            )
     return np.ascontiguousarray(m)
 
 
-def _read_depth(path: Path, image_path: Path, full: tuple[int, int], size: tuple[int, int], downscale: int,
-                scale: float) -> np.ndarray:
+def _read_depth(
+    path: Path, image_path: Path, full: tuple[int, int], size: tuple[int, int], downscale: int, scale: float
+) -> np.ndarray:
     img = _open_image(path, "depth")
     _check_size(img, path, "depth", image_path, full)
     if img.mode not in ("I;16", "I", "L"):
@@ -243,10 +256,19 @@ def _intrinsics(meta: Mapping, frame: Mapping, w: int, h: int, src: str) -> np.n
     return intrinsics_matrix(*vals)
 
 
-def load_views(transforms_json: str | Path, *, background: Sequence[float] = (1.0, 1.0, 1.0), downscale: int = 1,
-               load_masks: bool = True, load_depth: bool = True, valid_ids: Iterable[int] | None = None,
-               expected_count: int | None = None, max_views: int | None = None, blender_ext: str | None = ".png",
-               rigid_tol: float = 1e-4) -> Views:
+def load_views(
+    transforms_json: str | Path,
+    *,
+    background: Sequence[float] = (1.0, 1.0, 1.0),
+    downscale: int = 1,
+    load_masks: bool = True,
+    load_depth: bool = True,
+    valid_ids: Iterable[int] | None = None,
+    expected_count: int | None = None,
+    max_views: int | None = None,
+    blender_ext: str | None = ".png",
+    rigid_tol: float = 1e-4,
+) -> Views:
     """Load the frames of one ``transforms.json`` (ours, nerfstudio or NeRF-Blender).
 
     ``downscale``: integer factor (images area-averaged, masks/depth nearest, intrinsics scaled);
@@ -259,8 +281,10 @@ def load_views(transforms_json: str | Path, *, background: Sequence[float] = (1.
         raise CaptureError(f"{tj}: expected an object with a non-empty 'frames' list")
     frames = meta["frames"]
     if expected_count is not None and len(frames) != expected_count:
-        raise CaptureError(f"{tj}: camera count mismatch: {len(frames)} frames but scene.json says "
-                           f"{expected_count} views")
+        raise CaptureError(
+            f"{tj}: camera count mismatch: {len(frames)} frames but scene.json says "
+            f"{expected_count} views"
+        )
     if max_views is not None:
         frames = frames[:max_views]
     downscale = int(downscale)
@@ -278,18 +302,23 @@ def load_views(transforms_json: str | Path, *, background: Sequence[float] = (1.
         if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
             raise CaptureError(f"{where}: needs 'file_path' and 'transform_matrix'")
         try:
-            c2w = check_rigid(np.asarray(fr["transform_matrix"], dtype=np.float64), f"{where}.transform_matrix",
-                              rigid_tol)
+            c2w = check_rigid(
+                np.asarray(fr["transform_matrix"], dtype=np.float64), f"{where}.transform_matrix", rigid_tol
+            )
         except (TypeError, ValueError) as e:
-            raise CaptureError(str(e) if str(e).startswith(str(tj)) else f"{where}.transform_matrix: {e}") from e
+            raise CaptureError(
+                str(e) if str(e).startswith(str(tj)) else f"{where}.transform_matrix: {e}"
+            ) from e
         ipath = _resolve(base, fr["file_path"], blender_ext)
         rgb, (full_w, full_h) = _read_rgb(ipath, background, downscale)
         h, w = rgb.shape[:2]
         if size is None:
             size = (w, h)
         elif size != (w, h):
-            raise CaptureError(f"{ipath}: image is {full_w}x{full_h} but earlier images are "
-                               f"{size[0] * downscale}x{size[1] * downscale}")
+            raise CaptureError(
+                f"{ipath}: image is {full_w}x{full_h} but earlier images are "
+                f"{size[0] * downscale}x{size[1] * downscale}"
+            )
         K = _intrinsics(meta, fr, full_w, full_h, where)
         if downscale > 1:
             K[0, :] *= w / full_w
@@ -297,13 +326,24 @@ def load_views(transforms_json: str | Path, *, background: Sequence[float] = (1.
         if with_masks:
             if "mask_path" not in fr:
                 raise CaptureError(f"{where}: has no mask_path but other frames do (mask count mismatch)")
-            masks.append(_read_mask(_resolve(base, fr["mask_path"], None), ipath, (full_w, full_h), (w, h),
-                                    downscale, ids))
+            masks.append(
+                _read_mask(
+                    _resolve(base, fr["mask_path"], None), ipath, (full_w, full_h), (w, h), downscale, ids
+                )
+            )
         if with_depth:
             if "depth_path" not in fr:
                 raise CaptureError(f"{where}: has no depth_path but other frames do (depth count mismatch)")
-            depths.append(_read_depth(_resolve(base, fr["depth_path"], None), ipath, (full_w, full_h), (w, h),
-                                      downscale, depth_scale))
+            depths.append(
+                _read_depth(
+                    _resolve(base, fr["depth_path"], None),
+                    ipath,
+                    (full_w, full_h),
+                    (w, h),
+                    downscale,
+                    depth_scale,
+                )
+            )
         images.append(rgb)
         c2ws.append(c2w)
         Ks.append(K)
@@ -314,17 +354,31 @@ def load_views(transforms_json: str | Path, *, background: Sequence[float] = (1.
         images=torch.from_numpy(np.stack(images)),
         viewmats=torch.from_numpy(opengl_c2w_to_viewmat(c2w_all).astype(np.float32)),
         Ks=torch.from_numpy(np.stack(Ks).astype(np.float32)),
-        width=size[0], height=size[1], image_paths=tuple(paths), c2w_opengl=c2w_all,
+        width=size[0],
+        height=size[1],
+        image_paths=tuple(paths),
+        c2w_opengl=c2w_all,
         masks=torch.from_numpy(np.stack(masks)) if with_masks else None,
         depths=torch.from_numpy(np.stack(depths)) if with_depth else None,
     )
 
 
-def load_blender(transforms_json: str | Path, background: Sequence[float] = (1.0, 1.0, 1.0), downscale: int = 1,
-                 max_views: int | None = None) -> Views:
+def load_blender(
+    transforms_json: str | Path,
+    background: Sequence[float] = (1.0, 1.0, 1.0),
+    downscale: int = 1,
+    max_views: int | None = None,
+) -> Views:
     """Load a NeRF-Blender split (``transforms_*.json``, RGBA PNGs composited over ``background``)."""
-    return load_views(transforms_json, background=background, downscale=downscale, load_masks=False,
-                      load_depth=False, max_views=max_views, blender_ext=".png")
+    return load_views(
+        transforms_json,
+        background=background,
+        downscale=downscale,
+        load_masks=False,
+        load_depth=False,
+        max_views=max_views,
+        blender_ext=".png",
+    )
 
 
 # --------------------------------------------------------------------------------------------- scene.json
@@ -345,8 +399,9 @@ def _objects(meta: Mapping, src: Path) -> tuple[ObjectInfo, ...]:
     return tuple(sorted(out, key=lambda o: o.id))
 
 
-def _pose_list(entries, objects: tuple[ObjectInfo, ...], src: Path, where: str, key: str,
-               tol: float) -> np.ndarray:
+def _pose_list(
+    entries, objects: tuple[ObjectInfo, ...], src: Path, where: str, key: str, tol: float
+) -> np.ndarray:
     if not isinstance(entries, list):
         raise CaptureError(f"{src}: {where} must be a list of {{id, {key}}}")
     by_id = {}
@@ -354,7 +409,9 @@ def _pose_list(entries, objects: tuple[ObjectInfo, ...], src: Path, where: str, 
         if not isinstance(e, dict) or "id" not in e or key not in e:
             raise CaptureError(f"{src}: {where}[{j}] needs 'id' and '{key}'")
         try:
-            by_id[int(e["id"])] = check_rigid(np.asarray(e[key], dtype=np.float64), f"{src}: {where}[{j}]", tol)
+            by_id[int(e["id"])] = check_rigid(
+                np.asarray(e[key], dtype=np.float64), f"{src}: {where}[{j}]", tol
+            )
         except (TypeError, ValueError) as err:
             msg = str(err)
             raise CaptureError(msg if msg.startswith(str(src)) else f"{src}: {where}[{j}]: {msg}") from err
@@ -364,9 +421,16 @@ def _pose_list(entries, objects: tuple[ObjectInfo, ...], src: Path, where: str, 
     return np.stack([by_id[i] for i in want])
 
 
-def load_capture(path: str | Path, states: Sequence[str] | None = None, *, downscale: int = 1,
-                 load_masks: bool = True, load_depth: bool = True,
-                 background: Sequence[float] = (1.0, 1.0, 1.0), rigid_tol: float = 1e-4) -> Capture:
+def load_capture(
+    path: str | Path,
+    states: Sequence[str] | None = None,
+    *,
+    downscale: int = 1,
+    load_masks: bool = True,
+    load_depth: bool = True,
+    background: Sequence[float] = (1.0, 1.0, 1.0),
+    rigid_tol: float = 1e-4,
+) -> Capture:
     """Load a capture folder (``scene.json`` + ``<state>/transforms.json``), all states or the ones named."""
     root = Path(path)
     src = root / "scene.json"
@@ -393,20 +457,30 @@ def load_capture(path: str | Path, states: Sequence[str] | None = None, *, downs
             raise CaptureError(f"{src}: states.{n} must be an object")
         splits[n] = str(sm.get("split", "train"))
         if "object_poses" in sm:
-            poses[n] = _pose_list(sm["object_poses"], objects, src, f"states.{n}.object_poses", "pose", rigid_tol)
+            poses[n] = _pose_list(
+                sm["object_poses"], objects, src, f"states.{n}.object_poses", "pose", rigid_tol
+            )
             poses[n].setflags(write=False)
     for n in names:
         sm = state_meta[n]
         count = sm.get("num_views")
-        views[n] = load_views(root / n / "transforms.json", background=background, downscale=downscale,
-                              load_masks=load_masks, load_depth=load_depth, valid_ids=ids,
-                              expected_count=None if count is None else int(count), rigid_tol=rigid_tol)
+        views[n] = load_views(
+            root / n / "transforms.json",
+            background=background,
+            downscale=downscale,
+            load_masks=load_masks,
+            load_depth=load_depth,
+            valid_ids=ids,
+            expected_count=None if count is None else int(count),
+            rigid_tol=rigid_tol,
+        )
     supplied: dict[tuple[str, str], np.ndarray] = {}
     for j, rt in enumerate(meta.get("relative_transforms", [])):
         if not isinstance(rt, dict) or not {"src", "dst", "transforms"} <= set(rt):
             raise CaptureError(f"{src}: relative_transforms[{j}] needs 'src', 'dst' and 'transforms'")
-        t = _pose_list(rt["transforms"], objects, src, f"relative_transforms[{j}].transforms", "transform",
-                       rigid_tol)
+        t = _pose_list(
+            rt["transforms"], objects, src, f"relative_transforms[{j}].transforms", "transform", rigid_tol
+        )
         t.setflags(write=False)
         supplied[(str(rt["src"]), str(rt["dst"]))] = t
     bounds = None
@@ -415,7 +489,15 @@ def load_capture(path: str | Path, states: Sequence[str] | None = None, *, downs
         bounds = np.asarray(table["bounds"], dtype=np.float64)
         if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)):
             raise CaptureError(f"{src}: table.bounds must be [[xmin, ymin, zmin], [xmax, ymax, zmax]]")
-    return Capture(root=root, name=str(meta.get("name", root.name)), units=str(meta.get("units", "unknown")),
-                   objects=objects, states=MappingProxyType(views), poses=MappingProxyType(poses),
-                   splits=MappingProxyType(splits), table_bounds=bounds, metadata=MappingProxyType(meta),
-                   supplied_transforms=MappingProxyType(supplied))
+    return Capture(
+        root=root,
+        name=str(meta.get("name", root.name)),
+        units=str(meta.get("units", "unknown")),
+        objects=objects,
+        states=MappingProxyType(views),
+        poses=MappingProxyType(poses),
+        splits=MappingProxyType(splits),
+        table_bounds=bounds,
+        metadata=MappingProxyType(meta),
+        supplied_transforms=MappingProxyType(supplied),
+    )

@@ -1,9 +1,9 @@
 """Build a MuJoCo model of a scene description with ``mujoco.MjSpec``.
 
-World frame: +z up, the resting surface's top is ``z = 0`` and centred on the origin. Movable objects are bodies
-with a free joint (``qpos`` = position then quaternion w,x,y,z) so that poses are set per state and MuJoCo's
-collision detection can verify them; everything else (surface, floor, walls, props) is static background with
-object id 0. Shadows are off unless asked for (the method does not relight).
+World frame: +z up, the resting surface's top is ``z = 0`` and centred on the origin. Movable objects are
+bodies with a free joint (``qpos`` = position then quaternion w,x,y,z) so that poses are set per state and
+MuJoCo's collision detection can verify them; everything else (surface, floor, walls, props) is static
+background with object id 0. Shadows are off unless asked for (the method does not relight).
 """
 
 from __future__ import annotations
@@ -26,8 +26,10 @@ RENDER_CAMERA = "render_cam"
 SURFACE_GEOM = "surface"
 #: contact margin on the resting surface so resting contacts (distance ~0) are reported for verification
 SURFACE_MARGIN = 0.002
-DEFAULT_LIGHTS = (LightSpec(pos=(0.6, -0.8, 2.0), dir=(-0.3, 0.4, -1.0), diffuse=(0.55, 0.55, 0.55)),
-                  LightSpec(pos=(-0.8, 0.6, 2.0), dir=(0.4, -0.3, -1.0), diffuse=(0.3, 0.3, 0.32)))
+DEFAULT_LIGHTS = (
+    LightSpec(pos=(0.6, -0.8, 2.0), dir=(-0.3, 0.4, -1.0), diffuse=(0.55, 0.55, 0.55)),
+    LightSpec(pos=(-0.8, 0.6, 2.0), dir=(0.4, -0.3, -1.0), diffuse=(0.3, 0.3, 0.32)),
+)
 _GEOM_TYPES = {
     "box": mujoco.mjtGeom.mjGEOM_BOX,
     "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
@@ -87,8 +89,13 @@ class _Builder:
 
     def texture_2d(self, data: np.ndarray) -> str:
         name = self._name("tex2d_")
-        t = self.ms.add_texture(name=name, type=mujoco.mjtTexture.mjTEXTURE_2D, width=data.shape[1],
-                                height=data.shape[0], nchannel=3)
+        t = self.ms.add_texture(
+            name=name,
+            type=mujoco.mjtTexture.mjTEXTURE_2D,
+            width=data.shape[1],
+            height=data.shape[0],
+            nchannel=3,
+        )
         t.data = np.ascontiguousarray(data).tobytes()
         return name
 
@@ -103,8 +110,9 @@ class _Builder:
             return name
         data = pattern_texture(app.pattern, app.rgba[:3], app.color2, 64, app.cells, seed)
         tname = self._name("texcube_")
-        t = self.ms.add_texture(name=tname, type=mujoco.mjtTexture.mjTEXTURE_CUBE, width=64, height=64,
-                                nchannel=3)
+        t = self.ms.add_texture(
+            name=tname, type=mujoco.mjtTexture.mjTEXTURE_CUBE, width=64, height=64, nchannel=3
+        )
         t.data = data.tobytes()
         mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = tname
         mat.rgba = [1.0, 1.0, 1.0, app.rgba[3]]
@@ -129,8 +137,16 @@ class _Builder:
         s = self.scene.surface
         sx, sy = s.size
         px_per_m = 640.0
-        tex = surface_texture(self.scene.texture_seed, int(round(sx * px_per_m)), int(round(sy * px_per_m)),
-                              s.cells[0], s.cells[1], s.color1, s.color2, s.noise)
+        tex = surface_texture(
+            self.scene.texture_seed,
+            int(round(sx * px_per_m)),
+            int(round(sy * px_per_m)),
+            s.cells[0],
+            s.cells[1],
+            s.color1,
+            s.color2,
+            s.noise,
+        )
         mat = self.ms.add_material(name="surface_mat")
         mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = self.texture_2d(tex)
         mat.texuniform = True
@@ -139,31 +155,53 @@ class _Builder:
         mat.shininess = 0.1
         wb = self.ms.worldbody
         thick = s.thickness if s.kind == "table" else 0.004
-        wb.add_geom(name=SURFACE_GEOM, type=mujoco.mjtGeom.mjGEOM_BOX, size=[sx / 2, sy / 2, thick / 2],
-                    pos=[0, 0, -thick / 2], material="surface_mat", margin=SURFACE_MARGIN)
+        wb.add_geom(
+            name=SURFACE_GEOM,
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[sx / 2, sy / 2, thick / 2],
+            pos=[0, 0, -thick / 2],
+            material="surface_mat",
+            margin=SURFACE_MARGIN,
+        )
         floor_z = -s.height if s.kind == "table" else -thick
         if s.kind == "table":
             leg_mat = self.material(Appearance(rgba=(0.25, 0.18, 0.12, 1.0)), 0)
             leg_h = s.height - thick
             for ix, iy in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
-                wb.add_geom(name=f"table_leg_{ix}_{iy}".replace("-", "m"), type=mujoco.mjtGeom.mjGEOM_BOX,
-                            size=[0.02, 0.02, leg_h / 2], material=leg_mat,
-                            pos=[ix * (sx / 2 - 0.05), iy * (sy / 2 - 0.05), -thick - leg_h / 2])
+                wb.add_geom(
+                    name=f"table_leg_{ix}_{iy}".replace("-", "m"),
+                    type=mujoco.mjtGeom.mjGEOM_BOX,
+                    size=[0.02, 0.02, leg_h / 2],
+                    material=leg_mat,
+                    pos=[ix * (sx / 2 - 0.05), iy * (sy / 2 - 0.05), -thick - leg_h / 2],
+                )
         f = self.scene.floor
-        ftex = surface_texture(self.scene.texture_seed + 1, 256, 256, f.cells, f.cells, f.color1, f.color2, 0.15)
+        ftex = surface_texture(
+            self.scene.texture_seed + 1, 256, 256, f.cells, f.cells, f.color1, f.color2, 0.15
+        )
         fmat = self.ms.add_material(name="floor_mat")
         fmat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = self.texture_2d(ftex)
         fmat.texuniform = True
         fmat.texrepeat = [0.5, 0.5]
-        wb.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[4.0, 4.0, 0.1], pos=[0, 0, floor_z],
-                    material="floor_mat")
+        wb.add_geom(
+            name="floor",
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            size=[4.0, 4.0, 0.1],
+            pos=[0, 0, floor_z],
+            material="floor_mat",
+        )
         self.floor_z = floor_z
 
     def walls(self) -> None:
         for i, w in enumerate(self.scene.walls):
             mat = self.material(w.appearance, self.scene.texture_seed + 100 + i)
-            self.ms.worldbody.add_geom(name=f"wall:{w.name}", type=mujoco.mjtGeom.mjGEOM_BOX,
-                                       size=[e / 2 for e in w.extents], pos=list(w.center), material=mat)
+            self.ms.worldbody.add_geom(
+                name=f"wall:{w.name}",
+                type=mujoco.mjtGeom.mjGEOM_BOX,
+                size=[e / 2 for e in w.extents],
+                pos=list(w.center),
+                material=mat,
+            )
 
     def props(self) -> None:
         for i, p in enumerate(self.scene.props):
@@ -188,10 +226,19 @@ class _Builder:
         wb = self.ms.worldbody
         specs = self.scene.lights or DEFAULT_LIGHTS
         for i, ls in enumerate(specs):
-            wb.add_light(name=f"light{i}", pos=list(ls.pos), dir=list(ls.dir), diffuse=list(ls.diffuse),
-                         specular=[0.1, 0.1, 0.1], castshadow=bool(self.shadows),
-                         type=(mujoco.mjtLightType.mjLIGHT_DIRECTIONAL if ls.directional
-                               else mujoco.mjtLightType.mjLIGHT_SPOT))
+            wb.add_light(
+                name=f"light{i}",
+                pos=list(ls.pos),
+                dir=list(ls.dir),
+                diffuse=list(ls.diffuse),
+                specular=[0.1, 0.1, 0.1],
+                castshadow=bool(self.shadows),
+                type=(
+                    mujoco.mjtLightType.mjLIGHT_DIRECTIONAL
+                    if ls.directional
+                    else mujoco.mjtLightType.mjLIGHT_SPOT
+                ),
+            )
 
 
 def build_scene(spec: SceneSpec, width: int = 128, height: int = 128, shadows: bool = False) -> BuiltScene:
@@ -212,9 +259,15 @@ def build_scene(spec: SceneSpec, width: int = 128, height: int = 128, shadows: b
     geom_obj = np.zeros(model.ngeom, dtype=np.uint8)
     for k, bid in enumerate(body_ids):
         geom_obj[model.geom_bodyid == bid] = k + 1
-    return BuiltScene(spec=spec, model=model, object_body_ids=body_ids, object_qpos_adr=qadr,
-                      geom_object_ids=geom_obj, surface_geom_id=model.geom(SURFACE_GEOM).id,
-                      camera_id=model.camera(RENDER_CAMERA).id)
+    return BuiltScene(
+        spec=spec,
+        model=model,
+        object_body_ids=body_ids,
+        object_qpos_adr=qadr,
+        geom_object_ids=geom_obj,
+        surface_geom_id=model.geom(SURFACE_GEOM).id,
+        camera_id=model.camera(RENDER_CAMERA).id,
+    )
 
 
 def set_object_poses(built: BuiltScene, data: mujoco.MjData, poses: np.ndarray) -> None:
@@ -223,7 +276,7 @@ def set_object_poses(built: BuiltScene, data: mujoco.MjData, poses: np.ndarray) 
     if poses.shape != (built.num_objects, 4, 4):
         raise ValueError(f"expected poses of shape ({built.num_objects}, 4, 4), got {poses.shape}")
     for k, adr in enumerate(built.object_qpos_adr):
-        data.qpos[adr:adr + 3] = poses[k, :3, 3]
-        data.qpos[adr + 3:adr + 7] = _quat(poses[k, :3, :3])
+        data.qpos[adr : adr + 3] = poses[k, :3, 3]
+        data.qpos[adr + 3 : adr + 7] = _quat(poses[k, :3, :3])
     data.qvel[:] = 0.0
     mujoco.mj_forward(built.model, data)

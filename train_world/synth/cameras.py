@@ -43,7 +43,9 @@ def smooth_wobble(rng: np.random.Generator, s: np.ndarray, harmonics: int = 3) -
     return out / amp_total
 
 
-def orbit_c2w(orbit: OrbitSpec, n: int, rng: np.random.Generator, azimuth_phase_deg: float = 0.0) -> np.ndarray:
+def orbit_c2w(
+    orbit: OrbitSpec, n: int, rng: np.random.Generator, azimuth_phase_deg: float = 0.0
+) -> np.ndarray:
     """``n`` cameras [n,4,4] (OpenGL camera-to-world) along one orbit around ``orbit.target``.
 
     Azimuth advances evenly (with slight speed jitter) over ``azimuth_span_deg`` starting at
@@ -53,12 +55,16 @@ def orbit_c2w(orbit: OrbitSpec, n: int, rng: np.random.Generator, azimuth_phase_
         raise ValueError("orbit_c2w: need at least one camera")
     s = np.arange(n) / n
     speed = 0.25 / max(n, 1) * smooth_wobble(rng, s)
-    az = np.deg2rad(orbit.azimuth_offset_deg + azimuth_phase_deg) + np.deg2rad(orbit.azimuth_span_deg) * (s + speed)
+    az = np.deg2rad(orbit.azimuth_offset_deg + azimuth_phase_deg) + np.deg2rad(orbit.azimuth_span_deg) * (
+        s + speed
+    )
     el = np.deg2rad(orbit.elevation_deg + orbit.elevation_wobble_deg * smooth_wobble(rng, s))
     radius = orbit.radius + orbit.radius_wobble * smooth_wobble(rng, s)
     target = np.asarray(orbit.target, dtype=np.float64)[None, :] + orbit.target_jitter * np.stack(
-        [smooth_wobble(rng, s) for _ in range(3)], axis=1)
+        [smooth_wobble(rng, s) for _ in range(3)], axis=1
+    )
     roll = np.deg2rad(orbit.roll_wobble_deg) * smooth_wobble(rng, s, harmonics=4)
     eye = target + radius[:, None] * np.stack(
-        [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+        [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1
+    )
     return np.stack([look_at_opengl(eye[i], target[i], roll=roll[i]) for i in range(n)])

@@ -3,8 +3,8 @@
 Examples::
 
     dsg-synth --list
-    dsg-synth --scene two_blocks --out data/two_blocks            # the capture is data/two_blocks/scene.json ...
-    dsg-synth --scene all --out data/synth --seed 1               # one folder per scene: data/synth/<name>/
+    dsg-synth --scene two_blocks --out data/two_blocks      # writes data/two_blocks/scene.json, state1/ ...
+    dsg-synth --scene all --out data/synth --seed 1         # one folder per scene: data/synth/<name>/
     dsg-synth --scene my_scene.json --out data/mine --width 256 --height 192 --shadows
 """
 
@@ -24,9 +24,11 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="dsg-synth",
         description="Render synthetic dual-state captures (two training states with every object moved, plus "
-                    "held-out test states) of tabletop MuJoCo scenes, with RGB, object-id masks, depth and "
-                    "exact object poses. See README 'Capture format on disk'.",
-        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("Examples::", 1)[1])
+        "held-out test states) of tabletop MuJoCo scenes, with RGB, object-id masks, depth and "
+        "exact object poses. See README 'Capture format on disk'.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("Examples::", 1)[1],
+    )
     p.add_argument("--list", action="store_true", help="list the default scenes and exit")
     p.add_argument("--scene", help="default scene name, 'all', or a path to a scene description .json")
     p.add_argument("--out", type=Path, help="output folder (with --scene all: one sub-folder per scene)")
@@ -36,7 +38,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=int, default=48, help="training views per training state (default 48)")
     p.add_argument("--test-views", type=int, default=12, help="held-out test cameras (default 12)")
     p.add_argument("--test-states", type=int, default=3, help="test states with new object poses (default 3)")
-    p.add_argument("--shadows", action="store_true", help="lights cast shadows (harder variant; off by default)")
+    p.add_argument(
+        "--shadows", action="store_true", help="lights cast shadows (harder variant; off by default)"
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -54,9 +58,16 @@ def main(argv: list[str] | None = None) -> int:
     from .generate import GenerateConfig, generate_scene  # imports MuJoCo
 
     try:
-        cfg = GenerateConfig(seed=args.seed, width=args.width, height=args.height, views=args.views,
-                             test_views=args.test_views, test_states=args.test_states, shadows=args.shadows,
-                             progress=not args.quiet)
+        cfg = GenerateConfig(
+            seed=args.seed,
+            width=args.width,
+            height=args.height,
+            views=args.views,
+            test_views=args.test_views,
+            test_states=args.test_states,
+            shadows=args.shadows,
+            progress=not args.quiet,
+        )
         if args.scene == "all":
             jobs = [(resolve_scene(n), args.out / n) for n in default_scene_names()]
         else:

@@ -73,8 +73,13 @@ def _shape_dict(shape) -> dict:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
 
 
-def _scene_json(scene: SceneSpec, cfg: GenerateConfig, states: dict[str, np.ndarray],
-                splits: dict[str, str], counts: dict[str, int]) -> dict:
+def _scene_json(
+    scene: SceneSpec,
+    cfg: GenerateConfig,
+    states: dict[str, np.ndarray],
+    splits: dict[str, str],
+    counts: dict[str, int],
+) -> dict:
     (x0, x1), (y0, y1) = scene.table_bounds
     return {
         "format": FORMAT_NAME,
@@ -96,19 +101,28 @@ def _scene_json(scene: SceneSpec, cfg: GenerateConfig, states: dict[str, np.ndar
             "shadows": bool(cfg.shadows),
             "mujoco_version": mujoco.__version__,
         },
-        "objects": [{"id": i + 1, "name": o.name, "shape": _shape_dict(o.shape), "rest": o.rest}
-                    for i, o in enumerate(scene.objects)],
+        "objects": [
+            {"id": i + 1, "name": o.name, "shape": _shape_dict(o.shape), "rest": o.rest}
+            for i, o in enumerate(scene.objects)
+        ],
         "table": {"bounds": [[x0, y0, 0.0], [x1, y1, 0.0]], "top_z": 0.0, "kind": scene.surface.kind},
         "states": {
-            name: {"split": splits[name], "num_views": counts[name],
-                   "object_poses": [{"id": k + 1, "pose": matrix_to_list(p)} for k, p in enumerate(poses)]}
+            name: {
+                "split": splits[name],
+                "num_views": counts[name],
+                "object_poses": [{"id": k + 1, "pose": matrix_to_list(p)} for k, p in enumerate(poses)],
+            }
             for name, poses in states.items()
         },
     }
 
 
-def generate_scene(scene: SceneSpec | str, out: str | os.PathLike, config: GenerateConfig = GenerateConfig(),
-                   overwrite: bool = False) -> Path:
+def generate_scene(
+    scene: SceneSpec | str,
+    out: str | os.PathLike,
+    config: GenerateConfig | None = None,
+    overwrite: bool = False,
+) -> Path:
     """Generate ``scene`` (a spec or a default scene name / JSON path) into the folder ``out``.
 
     Refuses (``FileExistsError``) if ``out`` exists and is not empty unless ``overwrite``. The capture is
@@ -116,7 +130,7 @@ def generate_scene(scene: SceneSpec | str, out: str | os.PathLike, config: Gener
     """
     if isinstance(scene, str):
         scene = resolve_scene(scene)
-    cfg = config
+    cfg = GenerateConfig() if config is None else config
     out = Path(out)
     with staged_directory(out, overwrite=overwrite) as stage:
         built = build_scene(scene, cfg.width, cfg.height, cfg.shadows)
@@ -126,9 +140,13 @@ def generate_scene(scene: SceneSpec | str, out: str | os.PathLike, config: Gener
             verify_with_mujoco(built, data, poses, name)
         cams: dict[str, np.ndarray] = {}
         splits: dict[str, str] = {}
-        for i, name in enumerate(("state1", "state2")):
-            cams[name] = orbit_c2w(scene.cameras.train, cfg.views, rng_for(cfg.seed, f"cameras/{name}"),
-                                   azimuth_phase_deg=rng_for(cfg.seed, f"phase/{name}").uniform(0, 360))
+        for name in ("state1", "state2"):
+            cams[name] = orbit_c2w(
+                scene.cameras.train,
+                cfg.views,
+                rng_for(cfg.seed, f"cameras/{name}"),
+                azimuth_phase_deg=rng_for(cfg.seed, f"phase/{name}").uniform(0, 360),
+            )
             splits[name] = "train"
         if cfg.test_states:
             test_cams = orbit_c2w(scene.cameras.test, cfg.test_views, rng_for(cfg.seed, "cameras/test"))
@@ -136,8 +154,10 @@ def generate_scene(scene: SceneSpec | str, out: str | os.PathLike, config: Gener
                 cams[f"test_{t}"] = test_cams
                 splits[f"test_{t}"] = "test"
         total = sum(len(c) for c in cams.values())
-        with SceneRenderer(built, cfg.width, cfg.height) as renderer, \
-                tqdm(total=total, desc=f"dsg-synth {scene.name}", unit="view", disable=not cfg.progress) as bar:
+        with (
+            SceneRenderer(built, cfg.width, cfg.height) as renderer,
+            tqdm(total=total, desc=f"dsg-synth {scene.name}", unit="view", disable=not cfg.progress) as bar,
+        ):
             fx, fy, cx, cy = renderer.intrinsics()
             for name, c2ws in cams.items():
                 set_object_poses(built, data, states[name])
@@ -148,8 +168,11 @@ def generate_scene(scene: SceneSpec | str, out: str | os.PathLike, config: Gener
                     masks.append(encode_png(ids))
                     depths.append(encode_png(depth_to_png_units(depth)))
                     bar.update(1)
-                write_state_views(stage / name, list(c2ws), cfg.width, cfg.height, fx, fy, cx, cy,
-                                  images, masks, depths)
-        atomic_write_json(stage / "scene.json", _scene_json(
-            scene, cfg, states, splits, {k: len(v) for k, v in cams.items()}))
+                write_state_views(
+                    stage / name, list(c2ws), cfg.width, cfg.height, fx, fy, cx, cy, images, masks, depths
+                )
+        atomic_write_json(
+            stage / "scene.json",
+            _scene_json(scene, cfg, states, splits, {k: len(v) for k, v in cams.items()}),
+        )
     return out

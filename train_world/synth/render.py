@@ -1,8 +1,9 @@
 """Offscreen rendering of RGB, object-id masks and depth with MuJoCo (``MUJOCO_GL=egl`` by default).
 
 Conventions verified by the tests: MuJoCo's camera frame is OpenGL's (looks down -z, y up), the image is a
-pinhole with ``fx = fy = 0.5 * h / tan(fovy / 2)``, principal point ``(w/2, h/2)`` and pixel ``(u, v)`` centred at
-``(u + 0.5, v + 0.5)``; depth is the distance along the optical axis (z-depth, not ray length) in metres.
+pinhole with ``fx = fy = 0.5 * h / tan(fovy / 2)``, principal point ``(w/2, h/2)`` and pixel ``(u, v)``
+centred at ``(u + 0.5, v + 0.5)``; depth is the distance along the optical axis (z-depth, not ray length) in
+metres.
 """
 
 from __future__ import annotations
@@ -53,8 +54,9 @@ class SceneRenderer:
         m.cam_quat[cid] = q
         mujoco.mj_camlight(m, data)
 
-    def render(self, data: mujoco.MjData, c2w_gl: np.ndarray, rgb: bool = True, seg: bool = True,
-               depth: bool = True) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    def render(
+        self, data: mujoco.MjData, c2w_gl: np.ndarray, rgb: bool = True, seg: bool = True, depth: bool = True
+    ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
         """``(rgb uint8 [H,W,3], ids uint8 [H,W], depth float32 [H,W] metres, 0 = nothing)`` for one camera.
 
         ``data`` must hold the state (see :func:`build.set_object_poses`). ids: object id per pixel, 0 for
@@ -79,7 +81,8 @@ class SceneRenderer:
         return out_rgb, ids, out_depth
 
     def ids_from_segmentation(self, seg: np.ndarray) -> np.ndarray:
-        """MuJoCo segmentation (H,W,2 of object id, object type) -> uint8 object ids (geoms mapped to bodies)."""
+        """MuJoCo segmentation (H,W,2 of object id, object type) -> uint8 object ids (geoms mapped to
+        bodies)."""
         gid, gtype = seg[..., 0], seg[..., 1]
         is_geom = (gtype == int(mujoco.mjtObj.mjOBJ_GEOM)) & (gid >= 0)
         ids = np.zeros(gid.shape, dtype=np.uint8)

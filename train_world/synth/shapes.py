@@ -68,7 +68,9 @@ def mesh_vertices(shape: Shape) -> np.ndarray:
         rng = np.random.default_rng(np.random.SeedSequence([int(shape.seed), 0x6E4]))
         d = rng.normal(size=(n, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        caps = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64)
+        caps = np.array(
+            [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64
+        )
         # flatten the bottom so the gem has a face to stand on
         v = np.concatenate([d, caps * 0.9]) * np.array([r, r, h / 2])
         v[:, 2] = np.maximum(v[:, 2], -0.35 * h)

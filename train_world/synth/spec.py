@@ -1,7 +1,8 @@
 """Scene descriptions for ``dsg-synth``: frozen dataclasses parsed from small JSON files.
 
 The seven default scenes live in ``assets/scenes/*.json``. Lengths are metres, angles degrees, colours RGB(A)
-in [0,1]. The resting surface's top is the plane ``z = 0`` of the world; ``+z`` is up. A scene file looks like::
+in [0,1]. The resting surface's top is the plane ``z = 0`` of the world; ``+z`` is up. A scene file looks
+like::
 
     {"name": "...", "description": "...", "texture_seed": 3,
      "surface": {"kind": "table" | "floor", "size": [0.8, 0.6], "height": 0.74,
@@ -15,10 +16,10 @@ in [0,1]. The resting surface's top is the plane ``z = 0`` of the world; ``+z`` 
      "cameras": {"fovy_deg": 50, "train": {orbit}, "test": {orbit}},
      "placement": {"edge_margin": 0.03, "gap": 0.012, "visibility_margin": 0.01, "raster_cell": 0.004}}
 
-Shapes: ``box`` (``extents``: full size), ``cylinder`` and ``capsule`` (``radius``, ``height``: full length tip to
-tip), ``sphere`` (``radius``), ``mesh`` with ``mesh`` one of ``prism`` / ``frustum`` (``sides``, ``radius``,
-``top_radius``, ``height``) or ``gem`` (``radius``, ``height``, ``sides`` random hull points, ``seed``). Objects
-``rest`` ``upright`` (their z axis up) or on their ``side`` (rotated 90 degrees about x).
+Shapes: ``box`` (``extents``: full size), ``cylinder`` and ``capsule`` (``radius``, ``height``: full length
+tip to tip), ``sphere`` (``radius``), ``mesh`` with ``mesh`` one of ``prism`` / ``frustum`` (``sides``,
+``radius``, ``top_radius``, ``height``) or ``gem`` (``radius``, ``height``, ``sides`` random hull points,
+``seed``). Objects ``rest`` ``upright`` (their z axis up) or on their ``side`` (rotated 90 degrees about x).
 """
 
 from __future__ import annotations
@@ -155,8 +156,9 @@ class OrbitSpec:
 class CameraSpec:
     fovy_deg: float = 55.0
     train: OrbitSpec = OrbitSpec()
-    test: OrbitSpec = OrbitSpec(radius=0.8, radius_wobble=0.03, elevation_deg=57.0, elevation_wobble_deg=4.0,
-                                azimuth_offset_deg=17.0)
+    test: OrbitSpec = OrbitSpec(
+        radius=0.8, radius_wobble=0.03, elevation_deg=57.0, elevation_wobble_deg=4.0, azimuth_offset_deg=17.0
+    )
 
 
 @dataclass(frozen=True)
@@ -208,25 +210,26 @@ def _check_keys(d: dict, allowed, src: str, where: str) -> None:
 
 
 def _floats(v, n: int, src: str, where: str) -> tuple[float, ...]:
-    if not isinstance(v, (list, tuple)) or len(v) != n or not all(isinstance(x, (int, float)) for x in v):
+    if not isinstance(v, list | tuple) or len(v) != n or not all(isinstance(x, int | float) for x in v):
         raise _fail(src, where, f"expected {n} numbers, got {v!r}")
     return tuple(float(x) for x in v)
 
 
 def _pos(v, src: str, where: str) -> float:
-    if not isinstance(v, (int, float)) or not v > 0:
+    if not isinstance(v, int | float) or not v > 0:
         raise _fail(src, where, f"expected a positive number, got {v!r}")
     return float(v)
 
 
 def _rgba(v, src: str, where: str) -> tuple[float, float, float, float]:
-    if isinstance(v, (list, tuple)) and len(v) == 3:
+    if isinstance(v, list | tuple) and len(v) == 3:
         v = [*v, 1.0]
     return _floats(v, 4, src, where)  # type: ignore[return-value]
 
 
 def _simple(cls, d: dict, src: str, where: str, conv: dict):
-    """Build a flat dataclass from ``d`` converting each present key with ``conv[key](value, src, where.key)``."""
+    """Build a flat dataclass from ``d`` converting each present key with ``conv[key](value, src,
+    where.key)``."""
     _check_keys(d, conv, src, where)
     kw = {k: conv[k](v, src, f"{where}.{k}") for k, v in d.items()}
     return cls(**kw)
@@ -238,8 +241,13 @@ def _shape(d: dict, src: str, where: str) -> Shape:
     if t not in SHAPE_TYPES:
         raise _fail(src, f"{where}.type", f"expected one of {SHAPE_TYPES}, got {t!r}")
     kw: dict = {"type": t}
-    need = {"box": ("extents",), "sphere": ("radius",), "cylinder": ("radius", "height"),
-            "capsule": ("radius", "height"), "mesh": ("mesh", "radius", "height")}[t]
+    need = {
+        "box": ("extents",),
+        "sphere": ("radius",),
+        "cylinder": ("radius", "height"),
+        "capsule": ("radius", "height"),
+        "mesh": ("mesh", "radius", "height"),
+    }[t]
     for k in need:
         if k not in d:
             raise _fail(src, where, f"shape {t!r} needs {k!r}")
@@ -252,7 +260,7 @@ def _shape(d: dict, src: str, where: str) -> Shape:
         if k in d:
             kw[k] = _pos(d[k], src, f"{where}.{k}")
     if "top_radius" in d:
-        if not isinstance(d["top_radius"], (int, float)) or d["top_radius"] < 0:
+        if not isinstance(d["top_radius"], int | float) or d["top_radius"] < 0:
             raise _fail(src, f"{where}.top_radius", "expected a number >= 0")
         kw["top_radius"] = float(d["top_radius"])
     for k in ("sides", "seed"):
@@ -302,8 +310,12 @@ def _object(d: dict, src: str, where: str) -> ObjectSpec:
     _check_keys(d, ("name", "shape", "rest", *_APPEARANCE_KEYS), src, where)
     if not isinstance(d.get("name"), str) or not d["name"]:
         raise _fail(src, f"{where}.name", "expected a non-empty string")
-    return ObjectSpec(name=d["name"], shape=_shape(d.get("shape"), src, f"{where}.shape"),
-                      appearance=_appearance(d, src, where), rest=_rest(d.get("rest", "upright"), src, where))
+    return ObjectSpec(
+        name=d["name"],
+        shape=_shape(d.get("shape"), src, f"{where}.shape"),
+        appearance=_appearance(d, src, where),
+        rest=_rest(d.get("rest", "upright"), src, where),
+    )
 
 
 def _prop(d: dict, src: str, where: str) -> PropSpec:
@@ -311,27 +323,44 @@ def _prop(d: dict, src: str, where: str) -> PropSpec:
     on = d.get("on", "floor")
     if on not in ("table", "floor"):
         raise _fail(src, f"{where}.on", f"expected 'table' or 'floor', got {on!r}")
-    return PropSpec(name=str(d.get("name", where)), shape=_shape(d.get("shape"), src, f"{where}.shape"),
-                    appearance=_appearance(d, src, where), rest=_rest(d.get("rest", "upright"), src, where),
-                    position=_floats(d.get("position", [0, 0]), 2, src, f"{where}.position"),
-                    yaw_deg=float(d.get("yaw_deg", 0.0)), on=on)
+    return PropSpec(
+        name=str(d.get("name", where)),
+        shape=_shape(d.get("shape"), src, f"{where}.shape"),
+        appearance=_appearance(d, src, where),
+        rest=_rest(d.get("rest", "upright"), src, where),
+        position=_floats(d.get("position", [0, 0]), 2, src, f"{where}.position"),
+        yaw_deg=float(d.get("yaw_deg", 0.0)),
+        on=on,
+    )
 
 
 def _wall(d: dict, src: str, where: str) -> WallSpec:
     _check_keys(d, ("name", "center", "extents", *_APPEARANCE_KEYS), src, where)
-    return WallSpec(name=str(d.get("name", where)), center=_floats(d.get("center"), 3, src, f"{where}.center"),
-                    extents=_floats(d.get("extents"), 3, src, f"{where}.extents"),
-                    appearance=_appearance(d, src, where))
+    return WallSpec(
+        name=str(d.get("name", where)),
+        center=_floats(d.get("center"), 3, src, f"{where}.center"),
+        extents=_floats(d.get("extents"), 3, src, f"{where}.extents"),
+        appearance=_appearance(d, src, where),
+    )
 
 
 def _light(d: dict, src: str, where: str) -> LightSpec:
-    return _simple(LightSpec, d, src, where, {
-        "pos": lambda v, s, w: _floats(v, 3, s, w), "dir": lambda v, s, w: _floats(v, 3, s, w),
-        "diffuse": lambda v, s, w: _floats(v, 3, s, w), "directional": lambda v, s, w: bool(v)})
+    return _simple(
+        LightSpec,
+        d,
+        src,
+        where,
+        {
+            "pos": lambda v, s, w: _floats(v, 3, s, w),
+            "dir": lambda v, s, w: _floats(v, 3, s, w),
+            "diffuse": lambda v, s, w: _floats(v, 3, s, w),
+            "directional": lambda v, s, w: bool(v),
+        },
+    )
 
 
 def _num(v, src, where) -> float:
-    if not isinstance(v, (int, float)):
+    if not isinstance(v, int | float):
         raise _fail(src, where, f"expected a number, got {v!r}")
     return float(v)
 
@@ -352,8 +381,11 @@ def _cameras(d: dict, src: str, where: str) -> CameraSpec:
     fovy = float(d.get("fovy_deg", base.fovy_deg))
     if not 5.0 < fovy < 150.0:
         raise _fail(src, f"{where}.fovy_deg", f"expected 5..150 degrees, got {fovy}")
-    return CameraSpec(fovy_deg=fovy, train=_orbit(d.get("train", {}), src, f"{where}.train", base.train),
-                      test=_orbit(d.get("test", {}), src, f"{where}.test", base.test))
+    return CameraSpec(
+        fovy_deg=fovy,
+        train=_orbit(d.get("train", {}), src, f"{where}.train", base.train),
+        test=_orbit(d.get("test", {}), src, f"{where}.test", base.test),
+    )
 
 
 def _surface(d: dict, src: str, where: str) -> SurfaceSpec:
@@ -381,9 +413,21 @@ def _surface(d: dict, src: str, where: str) -> SurfaceSpec:
 
 
 def scene_from_dict(d: dict, source: str = "<dict>") -> SceneSpec:
-    """Parse and validate a scene description; errors are :class:`SpecError` naming ``source`` and the field."""
-    top = ("name", "description", "texture_seed", "surface", "floor", "walls", "props", "objects", "lights",
-           "cameras", "placement")
+    """Parse and validate a scene description; errors are :class:`SpecError` naming ``source`` and the
+    field."""
+    top = (
+        "name",
+        "description",
+        "texture_seed",
+        "surface",
+        "floor",
+        "walls",
+        "props",
+        "objects",
+        "lights",
+        "cameras",
+        "placement",
+    )
     _check_keys(d, top, source, "scene")
     name = d.get("name")
     if not isinstance(name, str) or not name:
@@ -397,19 +441,33 @@ def scene_from_dict(d: dict, source: str = "<dict>") -> SceneSpec:
         raise _fail(source, "objects", f"object names must be unique, got {names}")
     floor = d.get("floor", {})
     _check_keys(floor, ("color1", "color2", "cells"), source, "floor")
-    floor_spec = FloorSpec(**{k: (_floats(v, 3, source, f"floor.{k}") if k != "cells" else int(v))
-                              for k, v in floor.items()})
-    placement = _simple(PlacementSpec, d.get("placement", {}), source, "placement",
-                        {f.name: (_pos if f.name != "max_tries" else (lambda v, s, w: int(v)))
-                         for f in fields(PlacementSpec)})
+    floor_spec = FloorSpec(
+        **{k: (_floats(v, 3, source, f"floor.{k}") if k != "cells" else int(v)) for k, v in floor.items()}
+    )
+    placement = _simple(
+        PlacementSpec,
+        d.get("placement", {}),
+        source,
+        "placement",
+        {
+            f.name: (_pos if f.name != "max_tries" else (lambda v, s, w: int(v)))
+            for f in fields(PlacementSpec)
+        },
+    )
     return SceneSpec(
-        name=name, objects=objects, description=str(d.get("description", "")),
-        texture_seed=int(d.get("texture_seed", 0)), surface=_surface(d.get("surface", {}), source, "surface"),
+        name=name,
+        objects=objects,
+        description=str(d.get("description", "")),
+        texture_seed=int(d.get("texture_seed", 0)),
+        surface=_surface(d.get("surface", {}), source, "surface"),
         floor=floor_spec,
         walls=tuple(_wall(w, source, f"walls[{i}]") for i, w in enumerate(d.get("walls", []))),
         props=tuple(_prop(p, source, f"props[{i}]") for i, p in enumerate(d.get("props", []))),
         lights=tuple(_light(x, source, f"lights[{i}]") for i, x in enumerate(d.get("lights", []))),
-        cameras=_cameras(d.get("cameras", {}), source, "cameras"), placement=placement, source=source)
+        cameras=_cameras(d.get("cameras", {}), source, "cameras"),
+        placement=placement,
+        source=source,
+    )
 
 
 def load_scene_spec(path: str | Path) -> SceneSpec:

@@ -1,11 +1,11 @@
 """Object states of a synthetic scene: sampling and independent checks.
 
 Every state puts each movable object at a random yaw about +z (in its rest orientation), resting on the
-surface (its lowest point exactly at ``z = 0``), inside the surface bounds minus ``edge_margin``, and away from
-other objects and table props. The two training states are also *complementary*: no surface region under an
-object in ``state1`` is under an object in ``state2`` (so every hole left by a moved object is seen in the other
-state). All of this is checked on **footprint rasters** of the surface (cell ``raster_cell``): an object's
-footprint is the vertical projection of its convex hull, described by its support function in
+surface (its lowest point exactly at ``z = 0``), inside the surface bounds minus ``edge_margin``, and away
+from other objects and table props. The two training states are also *complementary*: no surface region under
+an object in ``state1`` is under an object in ``state2`` (so every hole left by a moved object is seen in the
+other state). All of this is checked on **footprint rasters** of the surface (cell ``raster_cell``): an
+object's footprint is the vertical projection of its convex hull, described by its support function in
 :data:`NUM_DIRECTIONS` horizontal directions (an outer polygon, hence conservative). MuJoCo's collision
 detection verifies the final states once more (:func:`verify_with_mujoco`).
 """
@@ -80,8 +80,9 @@ class _Footprints:
 _FP = _Footprints()
 
 
-def footprint_raster(grid: Grid, shape: Shape, pose: np.ndarray, dilate: float = 0.0,
-                     h: np.ndarray | None = None) -> np.ndarray:
+def footprint_raster(
+    grid: Grid, shape: Shape, pose: np.ndarray, dilate: float = 0.0, h: np.ndarray | None = None
+) -> np.ndarray:
     """Boolean [ny, nx] raster of cells whose centre lies in the footprint of ``shape`` at ``pose``, grown by
     ``dilate`` metres."""
     pose = np.asarray(pose, dtype=np.float64)
@@ -114,8 +115,13 @@ def _prop_obstacles(scene: SceneSpec, grid: Grid, dilate: float) -> np.ndarray:
     return occ
 
 
-def _place(rng: np.random.Generator, scene: SceneSpec, grid: Grid, occupied: np.ndarray,
-           avoid: np.ndarray | None = None) -> np.ndarray | None:
+def _place(
+    rng: np.random.Generator,
+    scene: SceneSpec,
+    grid: Grid,
+    occupied: np.ndarray,
+    avoid: np.ndarray | None = None,
+) -> np.ndarray | None:
     """Sample one state by rejection; ``avoid``: cells the visibility-grown footprints must not touch."""
     pl = scene.placement
     (xmin, xmax), (ymin, ymax) = scene.table_bounds
@@ -139,8 +145,10 @@ def _place(rng: np.random.Generator, scene: SceneSpec, grid: Grid, occupied: np.
             r_gap = footprint_raster(grid, obj.shape, pose, 0.5 * pl.gap, h)
             if (r_gap & occupied).any():
                 continue
-            if avoid is not None and (footprint_raster(grid, obj.shape, pose, 0.5 * pl.visibility_margin, h)
-                                      & avoid).any():
+            if (
+                avoid is not None
+                and (footprint_raster(grid, obj.shape, pose, 0.5 * pl.visibility_margin, h) & avoid).any()
+            ):
                 continue
             occupied |= r_gap
             poses[idx] = pose
@@ -157,8 +165,9 @@ def _union(scene: SceneSpec, grid: Grid, poses: np.ndarray, dilate: float) -> np
     return out
 
 
-def sample_states(scene: SceneSpec, rng: np.random.Generator, num_test_states: int = 3,
-                  max_restarts: int = 200) -> dict[str, np.ndarray]:
+def sample_states(
+    scene: SceneSpec, rng: np.random.Generator, num_test_states: int = 3, max_restarts: int = 200
+) -> dict[str, np.ndarray]:
     """Sample ``state1``, ``state2`` (complementary) and ``test_0..`` poses, each [K,4,4] float64, checked."""
     grid = surface_grid(scene)
     pl = scene.placement
@@ -178,8 +187,10 @@ def sample_states(scene: SceneSpec, rng: np.random.Generator, num_test_states: i
             states["state1"], states["state2"] = p1, p2
             break
     else:
-        raise StateError(f"scene {scene.name!r}: could not find two complementary states in {max_restarts} "
-                         "restarts; use fewer or smaller objects or a larger surface")
+        raise StateError(
+            f"scene {scene.name!r}: could not find two complementary states in {max_restarts} "
+            "restarts; use fewer or smaller objects or a larger surface"
+        )
     for t in range(num_test_states):
         for _ in range(max_restarts):
             p = _place(rng, scene, grid, obstacles)
@@ -210,8 +221,10 @@ def check_state(scene: SceneSpec, poses: np.ndarray, name: str = "state") -> Non
             raise StateError(f"{name}: pose of {obj.name!r} is not a rotation")
         z = resting_height(obj.shape, rot)
         if abs(pose[2, 3] - z) > 1e-6:
-            raise StateError(f"{name}: {obj.name!r} does not rest on the surface (z={pose[2, 3]:.4f}, "
-                             f"resting z={z:.4f})")
+            raise StateError(
+                f"{name}: {obj.name!r} does not rest on the surface (z={pose[2, 3]:.4f}, "
+                f"resting z={z:.4f})"
+            )
         h = _FP.support2(obj.shape, rot)
         tx, ty = pose[0, 3], pose[1, 3]
         if tx - h[_NX] < xmin or tx + h[_PX] > xmax or ty - h[_NY] < ymin or ty + h[_PY] > ymax:
@@ -227,8 +240,9 @@ def check_state(scene: SceneSpec, poses: np.ndarray, name: str = "state") -> Non
         owner[r] = k + 1
 
 
-def check_complementary_visibility(scene: SceneSpec, poses1: np.ndarray, poses2: np.ndarray,
-                                   margin: float | None = None) -> None:
+def check_complementary_visibility(
+    scene: SceneSpec, poses1: np.ndarray, poses2: np.ndarray, margin: float | None = None
+) -> None:
     """Raise :class:`StateError` if any surface cell is covered by an object in both states.
 
     Footprints are grown by ``margin / 2`` (default ``placement.visibility_margin``) before the test, so the
@@ -245,11 +259,14 @@ def check_complementary_visibility(scene: SceneSpec, poses1: np.ndarray, poses2:
             if n:
                 bad.append(f"{a.name!r} in state 1 / {b.name!r} in state 2 ({n} cells)")
     if bad:
-        raise StateError("complementary visibility violated: surface covered in both states by " + "; ".join(bad))
+        raise StateError(
+            "complementary visibility violated: surface covered in both states by " + "; ".join(bad)
+        )
 
 
-def verify_with_mujoco(built, data, poses: np.ndarray, name: str = "state",
-                       rest_tol: float = 5e-4, pen_tol: float = 1e-4) -> None:
+def verify_with_mujoco(
+    built, data, poses: np.ndarray, name: str = "state", rest_tol: float = 5e-4, pen_tol: float = 1e-4
+) -> None:
     """Set ``poses`` in MuJoCo and check its contacts: no object penetrates anything, and every object touches
     the surface (contact distance within ``rest_tol``)."""
     from .build import set_object_poses
@@ -272,8 +289,9 @@ def verify_with_mujoco(built, data, poses: np.ndarray, name: str = "state",
             continue
         if c.dist < -pen_tol:
             what = [names[o - 1] if o else built.model.geom(g).name for o, g in ((o1, g1), (o2, g2))]
-            raise StateError(f"{name}: MuJoCo reports {what[0]!r} and {what[1]!r} in collision "
-                             f"(depth {-c.dist:.4g} m)")
+            raise StateError(
+                f"{name}: MuJoCo reports {what[0]!r} and {what[1]!r} in collision " f"(depth {-c.dist:.4g} m)"
+            )
     if not touching.all():
         missing = [n for n, t in zip(names, touching, strict=True) if not t]
         raise StateError(f"{name}: objects {missing} do not rest on the surface according to MuJoCo")

@@ -1,8 +1,8 @@
 """Procedural textures (uint8 RGB arrays) for the synthetic scenes; deterministic given their arguments.
 
 The resting surface gets a high-frequency pattern (a colour-jittered checker overlaid with fine noise and
-speckles) so that the patches of table uncovered when an object moves are easy to see and to learn. Objects get
-simple two-colour patterns that MuJoCo maps onto every face through a cube texture.
+speckles) so that the patches of table uncovered when an object moves are easy to see and to learn. Objects
+get simple two-colour patterns that MuJoCo maps onto every face through a cube texture.
 """
 
 from __future__ import annotations
@@ -36,8 +36,9 @@ def _smooth_noise(rng: np.random.Generator, h: int, w: int, cells: int) -> np.nd
     return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
 
 
-def surface_texture(seed: int, width_px: int, height_px: int, cells_x: int, cells_y: int,
-                    color1, color2, noise: float = 0.25) -> np.ndarray:
+def surface_texture(
+    seed: int, width_px: int, height_px: int, cells_x: int, cells_y: int, color1, color2, noise: float = 0.25
+) -> np.ndarray:
     """High-frequency surface texture, uint8 [height_px, width_px, 3].
 
     A ``cells_x`` x ``cells_y`` checker between ``color1`` and ``color2`` (RGB in [0,1]) where every cell's
@@ -53,7 +54,9 @@ def surface_texture(seed: int, width_px: int, height_px: int, cells_x: int, cell
     c1, c2 = _rgb255(color1), _rgb255(color2)
     base = np.where(parity[..., None], c2, c1)
     # per-cell jitter: mostly brightness, a little hue
-    jitter = rng.normal(0.0, 16.0, size=(cells_y, cells_x, 1)) + rng.normal(0.0, 5.0, size=(cells_y, cells_x, 3))
+    jitter = rng.normal(0.0, 16.0, size=(cells_y, cells_x, 1)) + rng.normal(
+        0.0, 5.0, size=(cells_y, cells_x, 3)
+    )
     base = base + jitter[cy, cx]
     blotch = 0.75 + 0.5 * _smooth_noise(rng, h, w, max(cells_x // 3, 2))
     fine = 1.0 + noise * rng.uniform(-1.0, 1.0, size=(h, w, 1))
@@ -64,8 +67,9 @@ def surface_texture(seed: int, width_px: int, height_px: int, cells_x: int, cell
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
-def pattern_texture(pattern: str, color1, color2, size_px: int = 64, cells: int = 4,
-                    seed: int = 0) -> np.ndarray:
+def pattern_texture(
+    pattern: str, color1, color2, size_px: int = 64, cells: int = 4, seed: int = 0
+) -> np.ndarray:
     """Two-colour pattern, uint8 [size_px, size_px, 3]; ``pattern`` is one of :data:`PATTERNS`."""
     if pattern not in PATTERNS:
         raise ValueError(f"unknown texture pattern {pattern!r}; expected one of {PATTERNS}")

@@ -69,10 +69,13 @@ class _Composite(torch.autograd.Function):
         tiles_x = (width + R.TILE - 1) // R.TILE
         tiles_y = (height + R.TILE - 1) // R.TILE
         d = _np(depths)
-        # Stable sort: equal depths keep index order, so the result is deterministic.
-        order = np.argsort(d, axis=1, kind="stable")
         r = _np(rects)
-        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = R.bin_gaussians(r, order, tiles_x, tiles_y)
+        # Visible depths are >= near > 0, so their bit patterns sort like the values; the radix
+        # sort is stable (equal depths keep index order): the result is deterministic.
+        keys = d.view(np.uint32 if d.dtype == np.float32 else np.uint64)
+        order, counts = R.depth_order(keys, r)
+        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = R.bin_gaussians(r, order, counts, tiles_x,
+                                                                               tiles_y)
         out = torch.empty((C, height, width, D), dtype=dt)
         out_T = torch.empty((C, height, width), dtype=dt)
         m2, cn, op, col = _np(means2d), _np(conics), _np(opacities), _np(colors)

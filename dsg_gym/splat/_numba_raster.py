@@ -44,11 +44,61 @@ def make_consts(dtype) -> np.ndarray:
 
 
 @nb.njit(cache=True)
-def bin_gaussians(rects, order, tiles_x, tiles_y):
+def depth_order(keys, rects):
+    """Front-to-back order of each camera's visible Gaussians (stable LSD radix sort).
+
+    keys [C,N] unsigned ints that order like the depths (the bit patterns of positive floats);
+    rects [C,N,4] (x1 < x0: culled, left out). Returns order [C,N] int64 (visible Gaussians
+    first, ties in index order) and counts [C] of visible Gaussians.
+    """
+    C = keys.shape[0]
+    N = keys.shape[1]
+    nbytes = keys.itemsize
+    order = np.empty((C, N), dtype=np.int64)
+    counts = np.zeros(C, dtype=np.int64)
+    tmp = np.empty(N, dtype=np.int64)
+    hist = np.zeros((nbytes, 256), dtype=np.int64)
+    for c in range(C):
+        n = 0
+        for i in range(N):
+            if rects[c, i, 1] >= rects[c, i, 0]:
+                order[c, n] = i
+                n += 1
+        counts[c] = n
+        hist[:, :] = 0
+        for k in range(n):
+            key = keys[c, order[c, k]]
+            for b in range(nbytes):
+                hist[b, (key >> (8 * b)) & 255] += 1
+        src = order[c]
+        dst = tmp
+        swapped = False
+        for b in range(nbytes):
+            if hist[b].max() == n:
+                continue  # every key has the same byte here: nothing to reorder
+            pos = np.empty(256, dtype=np.int64)
+            acc = 0
+            for d in range(256):
+                pos[d] = acc
+                acc += hist[b, d]
+            for k in range(n):
+                i = src[k]
+                d = (keys[c, i] >> (8 * b)) & 255
+                dst[pos[d]] = i
+                pos[d] += 1
+            src, dst = dst, src
+            swapped = not swapped
+        if swapped:
+            order[c, :n] = tmp[:n]
+    return order, counts
+
+
+@nb.njit(cache=True)
+def bin_gaussians(rects, order, nvis, tiles_x, tiles_y):
     """Build per-tile lists of Gaussians in depth order.
 
-    rects [C,N,4] int32 inclusive pixel rectangles (x1 < x0: culled); order [C,N] int64 with each
-    camera's Gaussians sorted front to back. Returns ``tile_offsets [C*T+1]`` (CSR over tiles),
+    rects [C,N,4] int32 inclusive pixel rectangles (x1 < x0: culled); order [C,N] int64 and
+    nvis [C] from ``depth_order``. Returns ``tile_offsets [C*T+1]`` (CSR over tiles),
     ``tile_gauss [P]`` (Gaussian index per pair), ``gauss_offsets [C*N+1]`` and
     ``gauss_pairs [P]`` (pair slots of each (camera, Gaussian), ascending tile order).
     """
@@ -81,7 +131,7 @@ def bin_gaussians(rects, order, tiles_x, tiles_y):
     fill = tile_offsets[:-1].copy()
     gfill = gauss_offsets[:-1].copy()
     for c in range(C):
-        for k in range(N):
+        for k in range(nvis[c]):
             i = order[c, k]
             x0 = rects[c, i, 0]
             x1 = rects[c, i, 1]
@@ -185,6 +235,8 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
             cc_ = conics[c, g, 2] * half
             o = opacities[co, g]
             logo = math.log(np.float64(o) * 255.0)
+            # Beyond this sigma, alpha < 1/255 for sure: skip the exp (the margin covers rounding).
+            smax = logo * 1.0001 + 1e-4
             y0 = max(rects[c, g, 2], py0) - py0
             y1 = min(rects[c, g, 3], py0 + ph - 1) - py0
             xr0 = max(rects[c, g, 0], px0)
@@ -202,7 +254,7 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
                         continue
                     dx = xc[lx] - u
                     sigma = (ca * dx + bdy) * dx + cdy
-                    if sigma < zero:
+                    if sigma < zero or sigma > smax:
                         continue
                     alpha = min(amax, o * math.exp(-sigma))
                     if alpha < amin:
@@ -299,6 +351,8 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
             cc64 = np.float64(conics[c, g, 2])
             o = opacities[co, g]
             logo = math.log(np.float64(o) * 255.0)
+            # Beyond this sigma, alpha < 1/255 for sure: skip the exp (the margin covers rounding).
+            smax = logo * 1.0001 + 1e-4
             y0 = max(rects[c, g, 2], py0) - py0
             y1 = min(rects[c, g, 3], py0 + ph - 1) - py0
             xr0 = max(rects[c, g, 0], px0)
@@ -323,7 +377,7 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                         continue
                     dx = xc[lx] - u
                     sigma = (ca * dx + bdy) * dx + cdy
-                    if sigma < zero:
+                    if sigma < zero or sigma > smax:
                         continue
                     gauss = math.exp(-sigma)
                     raw = o * gauss

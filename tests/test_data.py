@@ -13,6 +13,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from train_world.data import CaptureError, load_blender, load_capture, load_views  # noqa: E402
@@ -124,8 +126,8 @@ def test_user_supplied_relative_transforms(broken):
     move[:3, 3] = [0.1, 0.0, 0.0]
 
     def edit(d):
-        for st in d["states"].values():
-            st.pop("object_poses")
+        for state in d["states"].values():
+            state.pop("object_poses")
         d["relative_transforms"] = [
             {
                 "src": "state1",
@@ -141,6 +143,29 @@ def test_user_supplied_relative_transforms(broken):
     np.testing.assert_allclose(cap.relative_transform("state2", "state1")[0], np.linalg.inv(move))
     with pytest.raises(KeyError, match="test_0"):
         cap.relative_transform("state1", "test_0")
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    q=st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1),
+    t=st.lists(st.floats(-5, 5), min_size=3, max_size=3),
+)
+def test_camera_conversion_round_trip(q, t):
+    w, x, y, z = np.asarray(q) / np.linalg.norm(q)  # quaternion w, x, y, z
+    rot = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = rot, t
+    vm = opengl_c2w_to_viewmat(c2w)
+    np.testing.assert_allclose(viewmat_to_opengl_c2w(vm), c2w, atol=1e-9)
+    # the camera centre maps to the origin; a point ahead (OpenGL -z) gets positive OpenCV depth
+    np.testing.assert_allclose(vm @ np.append(t, 1), [0, 0, 0, 1], atol=1e-9)
+    assert (vm @ c2w @ [0.0, 0.0, -2.0, 1.0])[2] == pytest.approx(2.0)
 
 
 def test_check_rigid():

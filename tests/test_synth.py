@@ -379,6 +379,10 @@ def test_default_scenes(name):
     assert d.min() > 0.15, "object colours must be distinct"
     states = sample_states(spec, rng_for(0, "states"), 2)
     check_complementary_visibility(spec, states["state1"], states["state2"])
+    built = build_scene(spec, 32, 32)
+    data = mujoco.MjData(built.model)
+    for name, poses in states.items():
+        verify_with_mujoco(built, data, poses, name)
     assert 0.6 <= spec.surface.size[0] * spec.surface.size[1] / 0.48 <= 1.5
 
 

@@ -76,10 +76,32 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         raise
 
 
+def _is_scalar(v: object) -> bool:
+    return v is None or isinstance(v, bool | int | float | str)
+
+
+def json_text(obj: object, indent: int = 0) -> str:
+    """Indented JSON where lists of scalars stay on one line (so 4x4 matrices read as four rows).
+
+    Insertion order is kept; NaN/inf are refused.
+    """
+    pad = "  " * indent
+    if isinstance(obj, dict):
+        if not obj:
+            return "{}"
+        items = [f"{pad}  {json.dumps(str(k))}: {json_text(v, indent + 1)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(items) + f"\n{pad}}}"
+    if isinstance(obj, list | tuple):
+        if all(_is_scalar(v) for v in obj):
+            return json.dumps(list(obj), allow_nan=False)
+        rows = [f"{pad}  {json_text(v, indent + 1)}" for v in obj]
+        return "[\n" + ",\n".join(rows) + f"\n{pad}]"
+    return json.dumps(obj, allow_nan=False)
+
+
 def atomic_write_json(path: str | os.PathLike, obj: object) -> None:
-    """Write ``obj`` as indented JSON (insertion order kept, trailing newline) atomically."""
-    text = json.dumps(obj, indent=2, allow_nan=False) + "\n"
-    atomic_write_bytes(path, text.encode("utf-8"))
+    """Write ``obj`` as indented JSON (:func:`json_text`, trailing newline) atomically."""
+    atomic_write_bytes(path, (json_text(obj) + "\n").encode("utf-8"))
 
 
 @contextlib.contextmanager

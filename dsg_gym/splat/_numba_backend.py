@@ -29,7 +29,7 @@ class _Project(torch.autograd.Function):
         depths = torch.empty((C, N), dtype=dt)
         radii = torch.empty((C, N, 2), dtype=torch.int32)
         rects = torch.empty((C, N, 4), dtype=torch.int32)
-        P.project_forward(m, q, s, _np(opacities.reshape(-1, N)), vm, K, float(width), float(height),
+        P.project_forward(m, q, s, _np(opacities), vm, K, float(width), float(height),
                           float(near), float(far), means2d.numpy(), conics.numpy(), depths.numpy(),
                           radii.numpy(), rects.numpy())
         ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii)

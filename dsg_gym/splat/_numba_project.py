@@ -32,7 +32,7 @@ _QNORM_EPS = 1e-12
 def _quat_to_rot(qw, qx, qy, qz):
     n2 = qw * qw + qx * qx + qy * qy + qz * qz
     if n2 < _QNORM_EPS * _QNORM_EPS:
-        return 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0
+        return 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0
     inv = 1.0 / math.sqrt(n2)
     w = qw * inv
     x = qx * inv

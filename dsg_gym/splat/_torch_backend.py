@@ -146,7 +146,11 @@ def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, wi
             img = img + (1.0 - acc_img)[..., None] * backgrounds[c]
         out_rows.append(img)
         alpha_rows.append(acc_img)
-    return torch.stack(out_rows), torch.stack(alpha_rows)[..., None]
+    colors_out, alphas_out = torch.stack(out_rows), torch.stack(alpha_rows)[..., None]
+    if not colors_out.requires_grad:  # nothing visible: keep the graph connected (zero gradients)
+        zero = (means2d.sum() + conics.sum() + colors.sum() + opacities.sum()) * 0.0
+        colors_out, alphas_out = colors_out + zero, alphas_out + zero
+    return colors_out, alphas_out
 
 
 __all__ = ["project", "composite"]

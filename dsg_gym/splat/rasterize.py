@@ -73,7 +73,8 @@ def rasterize(
         Ks: ``[C, 3, 3]`` intrinsics.
         width, height: image size in pixels.
         near_plane, far_plane: depth range kept.
-        backgrounds: ``[C, D]`` or ``[D]`` colour behind the Gaussians (default 0).
+        backgrounds: ``[C, D]`` or ``[D]`` colour behind the Gaussians (default 0); depth
+            channels have none.
         render_mode: "RGB", "D" (accumulated depth), "ED" (expected depth = D / alpha),
             "RGB+D" or "RGB+ED"; depth is appended as the last channel.
         sh_degree: None (``colors`` are final colours) or 0..3.
@@ -143,8 +144,11 @@ def rasterize(
     if backgrounds is not None:
         if backgrounds.dim() == 1:
             backgrounds = backgrounds[None].expand(C, -1)
-        out_d = D + (1 if "D" in render_mode else 0) if render_mode.startswith("RGB") else 1
-        _check_tensor("backgrounds", backgrounds, (C, out_d), dt)
+        if render_mode in ("D", "ED"):
+            raise ValueError("backgrounds apply to colour channels; render_mode has none")
+        _check_tensor("backgrounds", backgrounds, (C, D), dt)
+        if "D" in render_mode:  # the depth channel has no background
+            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(C, 1)], dim=-1)
 
     if backend == "auto":
         backend = "numba" if means.device.type == "cpu" else "torch"

@@ -1,0 +1,253 @@
+"""Renderer correctness: numba vs the torch reference, gradcheck, analytic cases, determinism."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from dsg_gym.splat import C0, rasterize, spherical_harmonics
+from dsg_gym.splat.scenes import intrinsics, random_scene
+
+DIFF_ARGS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def _render_with_grads(scene, backend, render_mode="RGB", backgrounds=None, seed=1):
+    leaves = {k: scene[k].clone().requires_grad_(True) for k in DIFF_ARGS}
+    bg = None if backgrounds is None else backgrounds.clone().requires_grad_(True)
+    kw = {**scene, **leaves}
+    out, alpha, meta = rasterize(**kw, backgrounds=bg, render_mode=render_mode, backend=backend)
+    meta["means2d"].retain_grad()
+    g = torch.Generator().manual_seed(seed)
+    w_out = torch.randn(out.shape, generator=g, dtype=out.dtype)
+    w_alpha = torch.randn(alpha.shape, generator=g, dtype=out.dtype)
+    ((out * w_out).sum() + (alpha * w_alpha).sum()).backward()
+    grads = {k: v.grad for k, v in leaves.items()}
+    grads["means2d"] = meta["means2d"].grad
+    if bg is not None:
+        grads["backgrounds"] = bg.grad
+    return out.detach(), alpha.detach(), meta, grads
+
+
+def _assert_grads_close(a, b, rel=1e-4):
+    for k in b:
+        scale = b[k].abs().max().clamp_min(1e-6)
+        err = (a[k] - b[k]).abs().max()
+        assert err <= rel * scale, f"gradient of {k}: max error {err:.3g} vs scale {scale:.3g}"
+
+
+@pytest.mark.parametrize("seed,cameras,mode", [(0, 1, "RGB"), (1, 2, "RGB+ED"), (2, 1, "RGB+D"), (3, 3, "RGB")])
+def test_numba_matches_torch_reference(seed, cameras, mode):
+    scene = random_scene(1500, width=48, height=40, seed=seed, cameras=cameras)
+    D = scene["colors"].shape[1]
+    bg = torch.rand(D, generator=torch.Generator().manual_seed(seed))
+    a_out, a_alpha, a_meta, a_grads = _render_with_grads(scene, "numba", mode, bg)
+    b_out, b_alpha, b_meta, b_grads = _render_with_grads(scene, "torch", mode, bg)
+    assert a_out.shape == (cameras, 40, 48, D + (1 if "D" in mode else 0))
+    assert (a_out[..., :D] - b_out[..., :D]).abs().max() <= 1e-5
+    if mode == "RGB+D":  # depths are metres (2..6 here): 1e-5 relative
+        assert (a_out[..., D] - b_out[..., D]).abs().max() <= 1e-5 * b_out[..., D].abs().max()
+    elif mode == "RGB+ED":  # depth / alpha: compare relative error where something was hit
+        hit = b_alpha[..., 0] > 0.05
+        assert ((a_out[..., D] - b_out[..., D]).abs()[hit] / b_out[..., D][hit]).max() <= 1e-5
+    assert (a_alpha - b_alpha).abs().max() <= 1e-5
+    assert torch.equal(a_meta["radii"], b_meta["radii"])
+    assert (a_meta["means2d"] - b_meta["means2d"]).abs().max() <= 1e-4
+    assert a_alpha.mean() > 0.5  # the scene really covers the view
+    _assert_grads_close(a_grads, b_grads)
+
+
+def test_per_camera_colors_and_opacities_match_reference():
+    scene = random_scene(800, width=40, height=32, seed=5, cameras=2)
+    g = torch.Generator().manual_seed(0)
+    scene["colors"] = torch.rand(2, 800, 4, generator=g)
+    scene["opacities"] = torch.rand(2, 800, generator=g) * 0.9 + 0.05
+    a = _render_with_grads(scene, "numba")
+    b = _render_with_grads(scene, "torch")
+    assert (a[0] - b[0]).abs().max() <= 1e-5
+    _assert_grads_close(a[3], b[3])
+
+
+def test_torch_tiling_equals_dense_oracle():
+    """The tiled torch reference equals a dense evaluation of every Gaussian on every pixel."""
+    from dsg_gym.splat import _torch_backend as T
+
+    s = random_scene(300, width=40, height=24, seed=7)
+    op = s["opacities"][None]
+    m2, cn, d, radii, rects = T.project(s["means"], s["quats"], s["scales"], op, s["viewmats"], s["Ks"],
+                                         40, 24, 0.01, 1e10)
+    tiled = T.composite(m2, cn, op, s["colors"][None], d, rects, None, 40, 24, tile_size=16)
+    dense = T.composite(m2, cn, op, s["colors"][None], d, rects, None, 40, 24, tile_size=None)
+    assert (tiled[0] - dense[0]).abs().max() <= 1e-6
+    # Rectangles are conservative: a Gaussian outside its rectangle has alpha < 1/255 there.
+    every = torch.zeros_like(rects)
+    every[..., 1] = 39
+    every[..., 3] = 23
+    every = torch.where((rects[..., 1:2] >= rects[..., 0:1]), every, rects)
+    full = T.composite(m2, cn, op, s["colors"][None], d, every, None, 40, 24, tile_size=None)
+    assert (full[0] - dense[0]).abs().max() <= 1e-6
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_gradcheck_float64(backend):
+    s = random_scene(6, width=12, height=10, channels=4, seed=3, dtype=torch.float64)
+    bg = torch.rand(4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    fixed = {k: s[k] for k in ("viewmats", "Ks", "width", "height")}
+
+    def f(means, quats, scales, opacities, colors, backgrounds):
+        out, alpha, _ = rasterize(means, quats, scales, opacities, colors, **fixed, backgrounds=backgrounds,
+                                  render_mode="RGB+ED", backend=backend)
+        return out, alpha
+
+    inputs = [s[k].clone().requires_grad_(True) for k in DIFF_ARGS] + [bg.requires_grad_(True)]
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def _single(mean, scale, opacity, color, width=33, height=33, quat=(1.0, 0.0, 0.0, 0.0), backend="numba"):
+    K = intrinsics(width, height)[None]
+    return rasterize(torch.tensor([mean], dtype=torch.float32), torch.tensor([quat]),
+                     torch.tensor([[scale] * 3]), torch.tensor([opacity]), torch.tensor([color]),
+                     torch.eye(4)[None], K, width, height, backend=backend)
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_isotropic_gaussian_at_centre(backend):
+    W = H = 33
+    K = intrinsics(W, H)
+    f = float(K[0, 0])
+    z, s, o = 3.0, 0.05, 0.8
+    # The principal point is at (16.5, 16.5): the centre of pixel (16, 16).
+    out, alpha, meta = _single((0.0, 0.0, z), s, o, (1.0, 0.5, 0.25), W, H, backend=backend)
+    img = alpha[0, :, :, 0]
+    peak = torch.nonzero(img == img.max())
+    assert peak.tolist() == [[16, 16]]
+    assert img[16, 16] == pytest.approx(o, rel=1e-6)
+    assert out[0, 16, 16].tolist() == pytest.approx([o, 0.5 * o, 0.25 * o], rel=1e-6)
+    var = (f * s / z) ** 2 + 0.3  # projected variance plus the 0.3 px^2 low-pass
+    ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    r2 = (xs - 16.5) ** 2 + (ys - 16.5) ** 2
+    expect = o * torch.exp(-0.5 * r2 / var)
+    expect = torch.where(expect >= 1 / 255, expect, torch.zeros_like(expect))
+    assert (img - expect).abs().max() <= 1e-5
+    # Footprint: zero exactly where alpha would fall below 1/255; radius from the covariance.
+    assert torch.equal(img > 0, expect > 0)
+    r_expect = math.sqrt(2 * math.log(255 * o) * var)
+    assert int(meta["radii"][0, 0, 0]) == math.ceil(r_expect)
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_front_gaussian_wins(backend):
+    W = H = 17
+    K = intrinsics(W, H)[None]
+    means = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, 2.0]])  # the second is in front
+    colors = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    args = dict(quats=torch.tensor([[1.0, 0, 0, 0]] * 2), scales=torch.full((2, 3), 0.2),
+                opacities=torch.tensor([0.9, 0.7]), viewmats=torch.eye(4)[None], Ks=K, width=W, height=H,
+                backend=backend)
+    out, alpha, meta = rasterize(means=means, colors=colors, **args)
+    c = out[0, 8, 8]
+    assert c[0] == pytest.approx(0.7, rel=1e-5)  # front: alpha 0.7, T = 1
+    assert c[2] == pytest.approx(0.3 * 0.9, rel=1e-5)  # back: alpha 0.9 behind T = 0.3
+    assert alpha[0, 8, 8, 0] == pytest.approx(1 - 0.3 * 0.1, rel=1e-5)
+    assert meta["depths"][0].tolist() == pytest.approx([4.0, 2.0])
+    # Swapping the list order changes nothing: order comes from depth.
+    out2, _, _ = rasterize(means=means.flip(0), colors=colors.flip(0),
+                           **{**args, "opacities": args["opacities"].flip(0)})
+    assert torch.equal(out, out2) if backend == "numba" else (out - out2).abs().max() < 1e-6
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_gaussian_behind_camera_contributes_nothing(backend):
+    leaves = [torch.tensor([[0.0, 0.0, -2.0]]), torch.tensor([[1.0, 0, 0, 0]]), torch.tensor([[0.5] * 3]),
+              torch.tensor([0.9]), torch.tensor([[1.0, 1.0, 1.0]])]
+    leaves = [t.requires_grad_(True) for t in leaves]
+    out, alpha, meta = rasterize(*leaves, torch.eye(4)[None], intrinsics(16, 16)[None], 16, 16,
+                                 backend=backend)
+    assert alpha.abs().max() == 0 and out.abs().max() == 0
+    assert meta["radii"].abs().max() == 0
+    (out.sum() + alpha.sum()).backward()
+    for t in leaves:
+        assert t.grad.abs().max() == 0
+
+
+def test_multi_camera_equals_separate_renders():
+    s = random_scene(700, width=32, height=32, seed=11, cameras=3)
+    out, alpha, _ = rasterize(**s)
+    for c in range(3):
+        one = {**s, "viewmats": s["viewmats"][c:c + 1], "Ks": s["Ks"][c:c + 1]}
+        o1, a1, _ = rasterize(**one)
+        assert torch.equal(o1[0], out[c]) and torch.equal(a1[0], alpha[c])
+
+
+def test_pixel_centre_convention():
+    """A Gaussian projecting onto (10.5, 7.5) peaks at pixel (x=10, y=7)."""
+    W, H = 24, 16
+    K = intrinsics(W, H)
+    f, cx, cy, z = float(K[0, 0]), float(K[0, 2]), float(K[1, 2]), 3.0
+    mean = ((10.5 - cx) * z / f, (7.5 - cy) * z / f, z)
+    _, alpha, meta = _single(mean, 0.02, 0.9, (1.0, 1.0, 1.0), W, H)
+    img = alpha[0, :, :, 0]
+    assert torch.nonzero(img == img.max()).tolist() == [[7, 10]]
+    assert meta["means2d"][0, 0].tolist() == pytest.approx([10.5, 7.5], abs=1e-4)
+
+
+def test_deterministic_bit_for_bit():
+    s = random_scene(3000, width=64, height=48, seed=4, cameras=2)
+    r1 = _render_with_grads(s, "numba", "RGB+ED")
+    r2 = _render_with_grads(s, "numba", "RGB+ED")
+    assert torch.equal(r1[0], r2[0]) and torch.equal(r1[1], r2[1])
+    for k in r1[3]:
+        assert torch.equal(r1[3][k], r2[3][k]), k
+
+
+def test_depth_modes():
+    s = random_scene(1200, width=32, height=32, seed=9)
+    rgb, alpha, _ = rasterize(**s, render_mode="RGB")
+    both, alpha2, _ = rasterize(**s, render_mode="RGB+ED")
+    d, _, _ = rasterize(**s, render_mode="D")
+    ed, _, _ = rasterize(**s, render_mode="ED")
+    assert torch.equal(both[..., :-1], rgb) and torch.equal(alpha, alpha2)
+    covered = alpha[..., 0] > 0.5
+    assert torch.allclose(ed[..., 0][covered], (d[..., 0] / alpha[..., 0])[covered], rtol=1e-5)
+    assert torch.allclose(both[..., -1], ed[..., 0], rtol=1e-5, atol=1e-6)
+    assert ed[..., 0][covered].min() >= 2.0 - 1e-3 and ed[..., 0][covered].max() <= 6.0 + 1e-3
+
+
+def test_empty_scene_renders_background():
+    z = torch.zeros
+    out, alpha, _ = rasterize(z(0, 3), z(0, 4), z(0, 3), z(0), z(0, 3), torch.eye(4)[None],
+                              intrinsics(16, 8)[None], 16, 8, backgrounds=torch.tensor([0.2, 0.4, 0.6]))
+    assert out.shape == (1, 8, 16, 3) and alpha.abs().max() == 0
+    assert torch.allclose(out[0, 3, 5], torch.tensor([0.2, 0.4, 0.6]))
+
+
+def test_spherical_harmonics_orthonormal():
+    """Real SH basis (degree 3, 3DGS order) is orthonormal on the sphere (Gauss-Legendre quadrature)."""
+    import numpy as np
+
+    xg, wg = np.polynomial.legendre.leggauss(16)
+    nphi = 32
+    phi = (np.arange(nphi) + 0.5) * 2 * np.pi / nphi
+    ct, ph = np.meshgrid(xg, phi, indexing="ij")
+    st = np.sqrt(1 - ct ** 2)
+    dirs = torch.tensor(np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1).reshape(-1, 3))
+    w = torch.tensor((wg[:, None] * np.full(nphi, 2 * np.pi / nphi)[None]).reshape(-1))
+    basis = []
+    for k in range(16):
+        coeffs = torch.zeros(dirs.shape[0], 16, 1, dtype=torch.float64)
+        coeffs[:, k, 0] = 1.0
+        basis.append(spherical_harmonics(3, dirs, coeffs)[:, 0])
+    B = torch.stack(basis, 1)  # [P, 16]
+    gram = (B * w[:, None]).T @ B
+    assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=1e-10)
+
+
+def test_sh_degree_zero_matches_dc_colour():
+    s = random_scene(500, width=32, height=32, seed=2, channels=3)
+    sh = torch.randn(500, 16, 3, generator=torch.Generator().manual_seed(0)) * 0.3
+    a, _, _ = rasterize(**{**s, "colors": sh}, sh_degree=0)
+    b, _, _ = rasterize(**{**s, "colors": torch.clamp_min(C0 * sh[:, 0] + 0.5, 0.0)})
+    assert torch.equal(a, b)
+    c, _, _ = rasterize(**{**s, "colors": sh}, sh_degree=3)
+    assert not torch.allclose(a, c)  # higher degrees are view dependent

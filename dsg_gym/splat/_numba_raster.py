@@ -216,6 +216,7 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
         acc = np.zeros((TILE * TILE, D), dtype=out_colors.dtype)
         trans = np.ones(TILE * TILE, dtype=out_colors.dtype)
         done = np.zeros(TILE * TILE, dtype=np.bool_)
+        row_done = np.zeros(TILE, dtype=np.int64)  # bit lx set: pixel (lx, ly) has finished
         xc = np.empty(TILE, dtype=out_colors.dtype)
         yc = np.empty(TILE, dtype=out_colors.dtype)
         for j in range(TILE):
@@ -246,6 +247,11 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
                 dy = yc[ly] - v
                 x0, x1 = _row_span(conics[c, g, 0], cb, conics[c, g, 2], u, np.float64(dy), logo,
                                    xr0, xr1, px0)
+                if x1 < x0:
+                    continue
+                span_bits = ((np.int64(1) << (x1 + 1)) - 1) ^ ((np.int64(1) << x0) - 1)
+                if row_done[ly] & span_bits == span_bits:
+                    continue  # every pixel of the span has finished
                 bdy = cb * dy
                 cdy = cc_ * dy * dy
                 for lx in range(x0, x1 + 1):
@@ -263,6 +269,7 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
                     nt = tp * (one - alpha)
                     if nt < tmin:
                         done[p] = True
+                        row_done[ly] |= np.int64(1) << lx
                         ndone += 1
                         continue
                     w = alpha * tp
@@ -313,6 +320,7 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
         npix = pw * ph
         trans = np.ones(TILE * TILE, dtype=out_T.dtype)
         done = np.zeros(TILE * TILE, dtype=np.bool_)
+        row_done = np.zeros(TILE, dtype=np.int64)  # bit lx set: pixel (lx, ly) has finished
         vpix = np.zeros((TILE * TILE, D), dtype=v_colors.dtype)
         va = np.zeros(TILE * TILE, dtype=v_colors.dtype)
         ptot = np.zeros(TILE * TILE, dtype=np.float64)
@@ -369,6 +377,11 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                 dy = yc[ly] - v
                 dyd = np.float64(dy)
                 x0, x1 = _row_span(conics[c, g, 0], cb, conics[c, g, 2], u, dyd, logo, xr0, xr1, px0)
+                if x1 < x0:
+                    continue
+                span_bits = ((np.int64(1) << (x1 + 1)) - 1) ^ ((np.int64(1) << x0) - 1)
+                if row_done[ly] & span_bits == span_bits:
+                    continue  # every pixel of the span has finished
                 bdy = cb * dy
                 cdy = cc_ * dy * dy
                 for lx in range(x0, x1 + 1):
@@ -388,6 +401,7 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                     nt = tp * (one - alpha)
                     if nt < tmin:
                         done[p] = True
+                        row_done[ly] |= np.int64(1) << lx
                         ndone += 1
                         continue
                     w = alpha * tp

@@ -24,7 +24,8 @@ def _check_tensor(name: str, t: Any, shape: tuple, dtype: torch.dtype | None = N
     if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
         want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
         raise ValueError(f"{name} must have shape {want}, got {list(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
+    # One reduction: amax propagates NaN and keeps Inf, so a finite result means all finite.
+    if t.numel() and not bool(torch.isfinite(t.detach().abs().amax())):
         bad = torch.nonzero(~torch.isfinite(t))[0].tolist()
         raise ValueError(f"{name} has a non-finite value (NaN or Inf) at index {bad}")
     return t
@@ -110,9 +111,9 @@ def rasterize(
         _check_tensor("opacities", opacities, (N,), dt)
     else:
         _check_tensor("opacities", opacities, (C, N), dt)
-    if bool(((opacities < 0) | (opacities > 1)).any()):
+    if N and (float(opacities.min()) < 0 or float(opacities.max()) > 1):
         raise ValueError("opacities must lie in [0, 1]")
-    if bool((scales < 0).any()):
+    if N and float(scales.min()) < 0:
         raise ValueError("scales must be non-negative (linear, post-activation)")
     if bool((Ks[:, 0, 0] <= 0).any() or (Ks[:, 1, 1] <= 0).any()):
         raise ValueError("Ks must have positive focal lengths")

@@ -111,9 +111,9 @@ def rasterize(
         _check_tensor("opacities", opacities, (N,), dt)
     else:
         _check_tensor("opacities", opacities, (C, N), dt)
-    if N and (float(opacities.min()) < 0 or float(opacities.max()) > 1):
+    if N and (float(opacities.detach().min()) < 0 or float(opacities.detach().max()) > 1):
         raise ValueError("opacities must lie in [0, 1]")
-    if N and float(scales.min()) < 0:
+    if N and float(scales.detach().min()) < 0:
         raise ValueError("scales must be non-negative (linear, post-activation)")
     if bool((Ks[:, 0, 0] <= 0).any() or (Ks[:, 1, 1] <= 0).any()):
         raise ValueError("Ks must have positive focal lengths")

@@ -183,6 +183,99 @@ def _row_span(ca, cb, cc, u, dy, logo, x0, x1, px0):
     return int(lo), int(hi)
 
 
+@nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
+def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, col, px0, py0, pw, ph,
+                  xc, yc, acc, trans, done, row_done):
+    """Composite one Gaussian into a tile's accumulators; returns how many pixels it finished.
+
+    The single definition of the per-pixel arithmetic: every forward kernel calls it, so that
+    full and incremental renders agree bit for bit. (rx0, rx1, ry0, ry1) is the Gaussian's
+    absolute pixel rectangle; acc [256, D], trans [256], done [256], row_done [16] the tile state.
+    """
+    amax = consts[0]
+    amin = consts[1]
+    tmin = consts[2]
+    half = consts[3]
+    one = consts[4]
+    zero = consts[5]
+    D = col.shape[0]
+    ca = conic_a * half
+    cc_ = conic_c * half
+    logo = math.log(np.float64(o) * 255.0)
+    # Beyond this sigma, alpha < 1/255 for sure: skip the exp (the margin covers rounding).
+    smax = logo * 1.0001 + 1e-4
+    y0 = max(ry0, py0) - py0
+    y1 = min(ry1, py0 + ph - 1) - py0
+    xr0 = max(rx0, px0)
+    xr1 = min(rx1, px0 + pw - 1)
+    finished = 0
+    for ly in range(y0, y1 + 1):
+        dy = yc[ly] - v
+        x0, x1 = _row_span(conic_a, conic_b, conic_c, u, np.float64(dy), logo, xr0, xr1, px0)
+        if x1 < x0:
+            continue
+        span_bits = ((np.int64(1) << (x1 + 1)) - 1) ^ ((np.int64(1) << x0) - 1)
+        if row_done[ly] & span_bits == span_bits:
+            continue  # every pixel of the span has finished
+        bdy = conic_b * dy
+        cdy = cc_ * dy * dy
+        for lx in range(x0, x1 + 1):
+            p = ly * TILE + lx
+            if done[p]:
+                continue
+            dx = xc[lx] - u
+            sigma = (ca * dx + bdy) * dx + cdy
+            if sigma < zero or sigma > smax:
+                continue
+            alpha = min(amax, o * math.exp(-sigma))
+            if alpha < amin:
+                continue
+            tp = trans[p]
+            nt = tp * (one - alpha)
+            if nt < tmin:
+                done[p] = True
+                row_done[ly] |= np.int64(1) << lx
+                finished += 1
+                continue
+            w = alpha * tp
+            for d in range(D):
+                acc[p, d] += w * col[d]
+            trans[p] = nt
+    return finished
+
+
+@nb.njit(cache=True, inline="always")
+def tile_state(tile, tiles_x, width, height, D, dtype):
+    """Fresh accumulators of one tile: (px0, py0, pw, ph, acc, trans, done, row_done, xc, yc)."""
+    ty = tile // tiles_x
+    tx = tile - ty * tiles_x
+    px0 = tx * TILE
+    py0 = ty * TILE
+    pw = min(TILE, width - px0)
+    ph = min(TILE, height - py0)
+    acc = np.zeros((TILE * TILE, D), dtype=dtype)
+    trans = np.ones(TILE * TILE, dtype=dtype)
+    done = np.zeros(TILE * TILE, dtype=np.bool_)
+    row_done = np.zeros(TILE, dtype=np.int64)  # bit lx set: pixel (lx, ly) has finished
+    xc = np.empty(TILE, dtype=dtype)
+    yc = np.empty(TILE, dtype=dtype)
+    for j in range(TILE):
+        xc[j] = (px0 + j) + 0.5
+        yc[j] = (py0 + j) + 0.5
+    return px0, py0, pw, ph, acc, trans, done, row_done, xc, yc
+
+
+@nb.njit(cache=True, inline="always")
+def store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T):
+    D = acc.shape[1]
+    for ly in range(ph):
+        for lx in range(pw):
+            p = ly * TILE + lx
+            for d in range(D):
+                out_colors[c, py0 + ly, px0 + lx, d] = acc[p, d]
+            out_T[c, py0 + ly, px0 + lx] = trans[p]
+
+
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss,
                       tiles_x, tiles_y, width, height, consts, out_colors, out_T):
@@ -197,31 +290,11 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
     Co = opacities.shape[0]
     Cc = colors.shape[0]
     T = tiles_x * tiles_y
-    amax = consts[0]
-    amin = consts[1]
-    tmin = consts[2]
-    half = consts[3]
-    one = consts[4]
-    zero = consts[5]
     for ct in nb.prange(C * T):
         c = ct // T
-        t = ct - c * T
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        px0 = tx * TILE
-        py0 = ty * TILE
-        pw = min(TILE, width - px0)
-        ph = min(TILE, height - py0)
+        px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
+            ct - c * T, tiles_x, width, height, D, out_colors.dtype)
         npix = pw * ph
-        acc = np.zeros((TILE * TILE, D), dtype=out_colors.dtype)
-        trans = np.ones(TILE * TILE, dtype=out_colors.dtype)
-        done = np.zeros(TILE * TILE, dtype=np.bool_)
-        row_done = np.zeros(TILE, dtype=np.int64)  # bit lx set: pixel (lx, ly) has finished
-        xc = np.empty(TILE, dtype=out_colors.dtype)
-        yc = np.empty(TILE, dtype=out_colors.dtype)
-        for j in range(TILE):
-            xc[j] = (px0 + j) + 0.5
-            yc[j] = (py0 + j) + 0.5
         ndone = 0
         co = 0 if Co == 1 else c
         cc = 0 if Cc == 1 else c
@@ -229,59 +302,11 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
             if ndone == npix:
                 break
             g = tile_gauss[s]
-            u = means2d[c, g, 0]
-            v = means2d[c, g, 1]
-            ca = conics[c, g, 0] * half
-            cb = conics[c, g, 1]
-            cc_ = conics[c, g, 2] * half
-            o = opacities[co, g]
-            logo = math.log(np.float64(o) * 255.0)
-            # Beyond this sigma, alpha < 1/255 for sure: skip the exp (the margin covers rounding).
-            smax = logo * 1.0001 + 1e-4
-            y0 = max(rects[c, g, 2], py0) - py0
-            y1 = min(rects[c, g, 3], py0 + ph - 1) - py0
-            xr0 = max(rects[c, g, 0], px0)
-            xr1 = min(rects[c, g, 1], px0 + pw - 1)
-            col = colors[cc, g]
-            for ly in range(y0, y1 + 1):
-                dy = yc[ly] - v
-                x0, x1 = _row_span(conics[c, g, 0], cb, conics[c, g, 2], u, np.float64(dy), logo,
-                                   xr0, xr1, px0)
-                if x1 < x0:
-                    continue
-                span_bits = ((np.int64(1) << (x1 + 1)) - 1) ^ ((np.int64(1) << x0) - 1)
-                if row_done[ly] & span_bits == span_bits:
-                    continue  # every pixel of the span has finished
-                bdy = cb * dy
-                cdy = cc_ * dy * dy
-                for lx in range(x0, x1 + 1):
-                    p = ly * TILE + lx
-                    if done[p]:
-                        continue
-                    dx = xc[lx] - u
-                    sigma = (ca * dx + bdy) * dx + cdy
-                    if sigma < zero or sigma > smax:
-                        continue
-                    alpha = min(amax, o * math.exp(-sigma))
-                    if alpha < amin:
-                        continue
-                    tp = trans[p]
-                    nt = tp * (one - alpha)
-                    if nt < tmin:
-                        done[p] = True
-                        row_done[ly] |= np.int64(1) << lx
-                        ndone += 1
-                        continue
-                    w = alpha * tp
-                    for d in range(D):
-                        acc[p, d] += w * col[d]
-                    trans[p] = nt
-        for ly in range(ph):
-            for lx in range(pw):
-                p = ly * TILE + lx
-                for d in range(D):
-                    out_colors[c, py0 + ly, px0 + lx, d] = acc[p, d]
-                out_T[c, py0 + ly, px0 + lx] = trans[p]
+            ndone += splat_forward(consts, means2d[c, g, 0], means2d[c, g, 1], conics[c, g, 0], conics[c, g, 1],
+                                   conics[c, g, 2], opacities[co, g], rects[c, g, 0], rects[c, g, 1],
+                                   rects[c, g, 2], rects[c, g, 3], colors[cc, g], px0, py0, pw, ph, xc, yc,
+                                   acc, trans, done, row_done)
+        store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)

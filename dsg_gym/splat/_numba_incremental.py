@@ -1,0 +1,140 @@
+"""Numba kernels for incremental rendering of a static background plus moving objects.
+
+The background and the objects are two Gaussian sets ``a`` and ``b``, each with its own
+projection and per-tile depth-sorted lists. A tile is composited by merging the two lists by
+depth (ties: background first, exactly like a stable sort of the concatenation
+``[background, objects]``), so a tile recomposited here equals the same tile of a full
+``rasterize`` of the concatenated scene bit for bit: both call ``splat_forward``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from ._numba_raster import _FASTMATH, TILE, splat_forward, store_tile, tile_state
+from .sh import C0, C1, C2, C3
+
+
+@nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def composite_merged(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_gauss,
+                     b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                     tiles_x, tiles_y, width, height, consts, out_colors, out_T):
+    """Recomposite the listed tiles (``tiles`` [M] of ``c * T + t``) into out_colors/out_T.
+
+    Per set: means2d [C,N,2], conics [C,N,3], opacities [N], colors [C,N,D], rects [C,N,4],
+    depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
+    """
+    T = tiles_x * tiles_y
+    D = out_colors.shape[3]
+    for m in nb.prange(tiles.shape[0]):
+        ct = tiles[m]
+        c = ct // T
+        px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
+            ct - c * T, tiles_x, width, height, D, out_colors.dtype)
+        npix = pw * ph
+        ndone = 0
+        i = a_off[ct]
+        ie = a_off[ct + 1]
+        j = b_off[ct]
+        je = b_off[ct + 1]
+        while (i < ie or j < je) and ndone < npix:
+            take_a = j >= je or (i < ie and a_depth[c, a_gauss[i]] <= b_depth[c, b_gauss[j]])
+            if take_a:
+                g = a_gauss[i]
+                i += 1
+                ndone += splat_forward(consts, a_m2[c, g, 0], a_m2[c, g, 1], a_cn[c, g, 0], a_cn[c, g, 1],
+                                       a_cn[c, g, 2], a_op[g], a_rect[c, g, 0], a_rect[c, g, 1], a_rect[c, g, 2],
+                                       a_rect[c, g, 3], a_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
+                                       row_done)
+            else:
+                g = b_gauss[j]
+                j += 1
+                ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
+                                       b_cn[c, g, 2], b_op[g], b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2],
+                                       b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
+                                       row_done)
+        store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
+
+
+@nb.njit(cache=True)
+def mark_tiles(rects, tiles_x, tiles_y, dirty):
+    """dirty [C, T] |= tiles touched by any rectangle in rects [C, n, 4]."""
+    C = rects.shape[0]
+    for c in range(C):
+        for i in range(rects.shape[1]):
+            x0 = rects[c, i, 0]
+            x1 = rects[c, i, 1]
+            if x1 < x0:
+                continue
+            for ty in range(rects[c, i, 2] // TILE, rects[c, i, 3] // TILE + 1):
+                for tx in range(x0 // TILE, x1 // TILE + 1):
+                    dirty[c, ty * tiles_x + tx] = True
+
+
+@nb.njit(cache=True)
+def rigid_transform(means, quats, R, t, q, out_means, out_quats):
+    """out = pose applied to Gaussians: means R m + t (float64 math), quats q * quat (Hamilton).
+
+    means [n,3], quats [n,4] wxyz (float32); R [3,3], t [3], q [4] float64.
+    """
+    for i in range(means.shape[0]):
+        mx = np.float64(means[i, 0])
+        my = np.float64(means[i, 1])
+        mz = np.float64(means[i, 2])
+        out_means[i, 0] = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + t[0]
+        out_means[i, 1] = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + t[1]
+        out_means[i, 2] = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + t[2]
+        bw = np.float64(quats[i, 0])
+        bx = np.float64(quats[i, 1])
+        by = np.float64(quats[i, 2])
+        bz = np.float64(quats[i, 3])
+        out_quats[i, 0] = q[0] * bw - q[1] * bx - q[2] * by - q[3] * bz
+        out_quats[i, 1] = q[0] * bx + q[1] * bw + q[2] * bz - q[3] * by
+        out_quats[i, 2] = q[0] * by - q[1] * bz + q[2] * bw + q[3] * bx
+        out_quats[i, 3] = q[0] * bz + q[1] * by - q[2] * bx + q[3] * bw
+
+
+@nb.njit(cache=True)
+def sh_to_rgb(means_w, R, campos, sh, degree, out):
+    """RGB = max(0, SH(dir) + 0.5) for Gaussians of one object seen from ``campos``.
+
+    means_w [n,3] world centres, R [3,3] the object's rotation (the view direction is taken
+    into the object frame, where the coefficients live), sh [n,K,3], out [n,3].
+    """
+    for i in range(means_w.shape[0]):
+        for ch in range(3):
+            out[i, ch] = C0 * sh[i, 0, ch]
+        if degree == 0:
+            for ch in range(3):
+                out[i, ch] = max(out[i, ch] + 0.5, 0.0)
+            continue
+        wx = np.float64(means_w[i, 0]) - campos[0]
+        wy = np.float64(means_w[i, 1]) - campos[1]
+        wz = np.float64(means_w[i, 2]) - campos[2]
+        x = R[0, 0] * wx + R[1, 0] * wy + R[2, 0] * wz
+        y = R[0, 1] * wx + R[1, 1] * wy + R[2, 1] * wz
+        z = R[0, 2] * wx + R[1, 2] * wy + R[2, 2] * wz
+        n = math.sqrt(x * x + y * y + z * z)
+        if n > 0:
+            x /= n
+            y /= n
+            z /= n
+        xx = x * x
+        yy = y * y
+        zz = z * z
+        for ch in range(3):
+            v = np.float64(out[i, ch]) - C1 * y * sh[i, 1, ch] + C1 * z * sh[i, 2, ch] - C1 * x * sh[i, 3, ch]
+            if degree > 1:
+                v += (C2[0] * x * y * sh[i, 4, ch] + C2[1] * y * z * sh[i, 5, ch]
+                      + C2[2] * (2.0 * zz - xx - yy) * sh[i, 6, ch] + C2[3] * x * z * sh[i, 7, ch]
+                      + C2[4] * (xx - yy) * sh[i, 8, ch])
+            if degree > 2:
+                v += (C3[0] * y * (3.0 * xx - yy) * sh[i, 9, ch] + C3[1] * x * y * z * sh[i, 10, ch]
+                      + C3[2] * y * (4.0 * zz - xx - yy) * sh[i, 11, ch]
+                      + C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[i, 12, ch]
+                      + C3[4] * x * (4.0 * zz - xx - yy) * sh[i, 13, ch]
+                      + C3[5] * z * (xx - yy) * sh[i, 14, ch] + C3[6] * x * (xx - 3.0 * yy) * sh[i, 15, ch])
+            out[i, ch] = max(v + 0.5, 0.0)

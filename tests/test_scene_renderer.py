@@ -1,0 +1,120 @@
+"""Incremental scene rendering equals a full render bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dsg_gym.gaussians import GaussianSet
+from dsg_gym.geometry import intrinsics_from_fov, look_at_viewmat
+from dsg_gym.scene_renderer import SceneRenderer
+from dsg_gym.splat import rasterize
+
+
+def _gset(rng, n, spread, deg=1, s=0.01, centre=(0.0, 0.0, 0.0)):
+    return GaussianSet(
+        means=(np.asarray(centre) + rng.normal(0, 1, (n, 3)) * np.asarray(spread)).astype(np.float32),
+        quats=rng.normal(size=(n, 4)).astype(np.float32),
+        scales=np.exp(rng.uniform(np.log(s), np.log(3 * s), (n, 3))).astype(np.float32),
+        opacities=rng.uniform(0.2, 0.95, n).astype(np.float32),
+        sh=rng.normal(0, 0.3, (n, (deg + 1) ** 2, 3)).astype(np.float32))
+
+
+def _pose(x, y, yaw, z=0.05):
+    P = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    P[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    P[:3, 3] = [x, y, z]
+    return P
+
+
+@pytest.fixture(scope="module")
+def setup():
+    rng = np.random.default_rng(0)
+    bg = _gset(rng, 3000, (0.3, 0.3, 0.01), deg=2, centre=(0.0, 0.0, -0.03))  # a table
+    objs = [_gset(rng, 300, 0.03, deg=1), _gset(rng, 200, 0.04, deg=0), _gset(rng, 250, 0.02, deg=3)]
+    W, H = 72, 56
+    eyes = torch.tensor([[0.8, 0.2, 0.6], [-0.6, 0.7, 0.5]], dtype=torch.float64)
+    vm = look_at_viewmat(eyes, torch.zeros(2, 3, dtype=torch.float64)).float().double().numpy()
+    K = intrinsics_from_fov(np.radians(55), W, H).float().double().numpy()[None].repeat(2, 0)
+    return bg, objs, vm, K, W, H
+
+
+def _compose_and_rasterize(sr, bg, vm, K, W, H):
+    st = sr._state
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
+    means = np.concatenate([bg.means, st["means"]])
+    quats = np.concatenate([bg.quats, st["quats"]])
+    scales = np.concatenate([bg.scales, sr._obj_scales])
+    op = np.concatenate([bg.opacities, sr._obj_opac])
+    cols = np.concatenate([st["bg_colors"], st["colors"]], axis=1)
+    out, alpha, _ = rasterize(t(means), t(quats), t(scales), t(op), t(cols), t(vm.astype(np.float32)),
+                              t(K.astype(np.float32)), W, H)
+    return out.numpy(), alpha[..., 0].numpy()
+
+
+def test_incremental_equals_full_and_rasterize(setup):
+    bg, objs, vm, K, W, H = setup
+    sr = SceneRenderer(bg, objs, vm, K, W, H, background_color=(0.1, 0.2, 0.3))
+    rng = np.random.default_rng(1)
+    poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
+    sr.render(poses, depth=True)
+    dirty = []
+    for step in range(12):
+        k = step % 3
+        poses[k] = poses[k] @ _pose(rng.normal(0, 0.02), rng.normal(0, 0.02), rng.normal(0, 0.3), z=0.0)
+        inc = sr.render(poses, depth=True)
+        out_i, T_i = (x.copy() for x in sr.buffers())
+        dirty.append(sr.last_dirty_tiles)
+        full = sr.render(poses, depth=True, incremental=False)
+        out_f, T_f = sr.buffers()
+        assert np.array_equal(out_i, out_f) and np.array_equal(T_i, T_f), f"step {step}"
+        for name in ("rgb", "mask", "depth", "alpha"):
+            assert np.array_equal(getattr(inc, name), getattr(full, name)), name
+    total = 2 * ((W + 15) // 16) * ((H + 15) // 16)
+    assert 0 < min(dirty) and max(dirty) < total  # only part of the image was recomposited
+    out_r, alpha_r = _compose_and_rasterize(sr, bg, vm, K, W, H)
+    assert np.array_equal(out_r, sr.buffers()[0])
+    assert np.array_equal(alpha_r, 1.0 - sr.buffers()[1])
+
+
+def test_unmoved_render_touches_nothing_and_outputs(setup):
+    bg, objs, vm, K, W, H = setup
+    sr = SceneRenderer(bg, objs, vm, K, W, H)
+    poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
+    a = sr.render(poses)
+    b = sr.render(poses.copy())
+    assert sr.last_dirty_tiles == 0
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.mask, b.mask)
+    assert a.rgb.shape == (2, H, W, 3) and a.rgb.dtype == np.uint8
+    assert a.mask.dtype == np.uint8 and set(np.unique(a.mask)) <= {0, 1, 2, 3}
+    assert {1, 2, 3} & set(np.unique(a.mask))  # objects are visible
+    assert a.depth is None
+    only_mask = sr.render(poses, rgb=False, mask=True)
+    assert only_mask.rgb is None and np.array_equal(only_mask.mask, a.mask)
+
+
+def test_object_moved_out_of_view_reveals_background(setup):
+    bg, objs, vm, K, W, H = setup
+    sr = SceneRenderer(GaussianSet.empty(sh_degree=0), objs[:1], vm, K, W, H)
+    out = sr.render(_pose(0.0, 0.0, 0.0)[None])
+    assert (out.mask == 1).any()
+    gone = sr.render(_pose(50.0, 0.0, 0.0)[None])
+    assert not (gone.mask == 1).any() and gone.alpha.max() == 0.0
+
+
+def test_bad_poses_rejected(setup):
+    bg, objs, vm, K, W, H = setup
+    sr = SceneRenderer(bg, objs, vm, K, W, H)
+    poses = np.stack([_pose(0, 0, 0)] * 3)
+    with pytest.raises(ValueError, match="shape"):
+        sr.render(poses[:2])
+    bad = poses.copy()
+    bad[1, 0, 3] = np.nan
+    with pytest.raises(ValueError, match="object 1"):
+        sr.render(bad)
+    mirror = poses.copy()
+    mirror[2, :3, :3] = np.diag([1.0, 1.0, -1.0])
+    with pytest.raises(ValueError, match="reflection"):
+        sr.render(mirror)

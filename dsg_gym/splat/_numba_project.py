@@ -51,6 +51,48 @@ def _clamp(v, lo, hi):
     return lo if v < lo else (hi if v > hi else v)
 
 
+@nb.njit(cache=True, inline="always")
+def _cam_rotation(V, r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """W = Rw R: the Gaussian's rotation seen in camera axes (row-major, 9 values)."""
+    return (V[0, 0] * r00 + V[0, 1] * r10 + V[0, 2] * r20, V[0, 0] * r01 + V[0, 1] * r11 + V[0, 2] * r21,
+            V[0, 0] * r02 + V[0, 1] * r12 + V[0, 2] * r22, V[1, 0] * r00 + V[1, 1] * r10 + V[1, 2] * r20,
+            V[1, 0] * r01 + V[1, 1] * r11 + V[1, 2] * r21, V[1, 0] * r02 + V[1, 1] * r12 + V[1, 2] * r22,
+            V[2, 0] * r00 + V[2, 1] * r10 + V[2, 2] * r20, V[2, 0] * r01 + V[2, 1] * r11 + V[2, 2] * r21,
+            V[2, 0] * r02 + V[2, 1] * r12 + V[2, 2] * r22)
+
+
+@nb.njit(cache=True, inline="always")
+def _jacobian(px, py, rz, fx, fy, cx, cy, width, height):
+    """Perspective Jacobian entries (j00, j02, j11, j12) with 3DGS's clamp of x/z and y/z to
+    1.3x the half field of view, the clamped ratios (ux, uy) and whether each was clamped."""
+    tanx = 0.5 * width / fx
+    tany = 0.5 * height / fy
+    xr = px * rz
+    yr = py * rz
+    lox = -(cx / fx + 0.3 * tanx)
+    hix = (width - cx) / fx + 0.3 * tanx
+    loy = -(cy / fy + 0.3 * tany)
+    hiy = (height - cy) / fy + 0.3 * tany
+    ux = _clamp(xr, lox, hix)
+    uy = _clamp(yr, loy, hiy)
+    return fx * rz, -fx * ux * rz, fy * rz, -fy * uy * rz, ux, uy, xr < lox or xr > hix, yr < loy or yr > hiy
+
+
+@nb.njit(cache=True, inline="always")
+def _cov2d(j00, j02, j11, j12, m00, m01, m02, m10, m11, m12, m20, m21, m22):
+    """A = J Mc (2x3) and the 2D covariance A A^T + blur as (a00..a12, sa, sb, sc)."""
+    a00 = j00 * m00 + j02 * m20
+    a01 = j00 * m01 + j02 * m21
+    a02 = j00 * m02 + j02 * m22
+    a10 = j11 * m10 + j12 * m20
+    a11 = j11 * m11 + j12 * m21
+    a12 = j11 * m12 + j12 * m22
+    sa = a00 * a00 + a01 * a01 + a02 * a02 + BLUR
+    sb = a00 * a10 + a01 * a11 + a02 * a12
+    sc = a10 * a10 + a11 * a11 + a12 * a12 + BLUR
+    return a00, a01, a02, a10, a11, a12, sa, sb, sc
+
+
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
                     means2d, conics, depths, radii, rects):
@@ -104,35 +146,11 @@ def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height
         sx = np.float64(scales[i, 0])
         sy = np.float64(scales[i, 1])
         sz = np.float64(scales[i, 2])
-        # Rotate into the camera first: Mc = Rw R S.
-        m00 = (V[0, 0] * r00 + V[0, 1] * r10 + V[0, 2] * r20) * sx
-        m01 = (V[0, 0] * r01 + V[0, 1] * r11 + V[0, 2] * r21) * sy
-        m02 = (V[0, 0] * r02 + V[0, 1] * r12 + V[0, 2] * r22) * sz
-        m10 = (V[1, 0] * r00 + V[1, 1] * r10 + V[1, 2] * r20) * sx
-        m11 = (V[1, 0] * r01 + V[1, 1] * r11 + V[1, 2] * r21) * sy
-        m12 = (V[1, 0] * r02 + V[1, 1] * r12 + V[1, 2] * r22) * sz
-        m20 = (V[2, 0] * r00 + V[2, 1] * r10 + V[2, 2] * r20) * sx
-        m21 = (V[2, 0] * r01 + V[2, 1] * r11 + V[2, 2] * r21) * sy
-        m22 = (V[2, 0] * r02 + V[2, 1] * r12 + V[2, 2] * r22) * sz
-        # Jacobian of the perspective map with the x/z, y/z clamp of 3DGS.
-        tanx = 0.5 * width / fx
-        tany = 0.5 * height / fy
-        ux = _clamp(px * rz, -(cx / fx + 0.3 * tanx), (width - cx) / fx + 0.3 * tanx)
-        uy = _clamp(py * rz, -(cy / fy + 0.3 * tany), (height - cy) / fy + 0.3 * tany)
-        j00 = fx * rz
-        j02 = -fx * ux * rz
-        j11 = fy * rz
-        j12 = -fy * uy * rz
-        # A = J Mc (2x3); Sigma2d = A A^T.
-        a00 = j00 * m00 + j02 * m20
-        a01 = j00 * m01 + j02 * m21
-        a02 = j00 * m02 + j02 * m22
-        a10 = j11 * m10 + j12 * m20
-        a11 = j11 * m11 + j12 * m21
-        a12 = j11 * m12 + j12 * m22
-        sa = a00 * a00 + a01 * a01 + a02 * a02 + BLUR
-        sb = a00 * a10 + a01 * a11 + a02 * a12
-        sc = a10 * a10 + a11 * a11 + a12 * a12 + BLUR
+        # Rotate into the camera first: Mc = Rw R S; then Sigma2d = J Mc Mc^T J^T + blur.
+        w00, w01, w02, w10, w11, w12, w20, w21, w22 = _cam_rotation(V, r00, r01, r02, r10, r11, r12, r20, r21, r22)
+        j00, j02, j11, j12, _, _, _, _ = _jacobian(px, py, rz, fx, fy, cx, cy, width, height)
+        _, _, _, _, _, _, sa, sb, sc = _cov2d(j00, j02, j11, j12, w00 * sx, w01 * sy, w02 * sz, w10 * sx, w11 * sy,
+                                              w12 * sz, w20 * sx, w21 * sy, w22 * sz)
         det = sa * sc - sb * sb
         if not (det > 0.0) or not math.isfinite(det):
             conics[c, i, 0] = 0.0
@@ -221,15 +239,8 @@ def project_backward(means, quats, scales, viewmats, Ks, width, height, radii,
                 vpy += vv * fy * rz
                 vpz -= (vu * fx * px + vv * fy * py) * rz2
                 # Recompute the forward quantities.
-                w00 = V[0, 0] * r00 + V[0, 1] * r10 + V[0, 2] * r20
-                w01 = V[0, 0] * r01 + V[0, 1] * r11 + V[0, 2] * r21
-                w02 = V[0, 0] * r02 + V[0, 1] * r12 + V[0, 2] * r22
-                w10 = V[1, 0] * r00 + V[1, 1] * r10 + V[1, 2] * r20
-                w11 = V[1, 0] * r01 + V[1, 1] * r11 + V[1, 2] * r21
-                w12 = V[1, 0] * r02 + V[1, 1] * r12 + V[1, 2] * r22
-                w20 = V[2, 0] * r00 + V[2, 1] * r10 + V[2, 2] * r20
-                w21 = V[2, 0] * r01 + V[2, 1] * r11 + V[2, 2] * r21
-                w22 = V[2, 0] * r02 + V[2, 1] * r12 + V[2, 2] * r22
+                w00, w01, w02, w10, w11, w12, w20, w21, w22 = _cam_rotation(V, r00, r01, r02, r10, r11, r12,
+                                                                            r20, r21, r22)
                 m00 = w00 * sx
                 m01 = w01 * sy
                 m02 = w02 * sz
@@ -239,31 +250,9 @@ def project_backward(means, quats, scales, viewmats, Ks, width, height, radii,
                 m20 = w20 * sx
                 m21 = w21 * sy
                 m22 = w22 * sz
-                tanx = 0.5 * width / fx
-                tany = 0.5 * height / fy
-                xr = px * rz
-                yr = py * rz
-                lox = -(cx / fx + 0.3 * tanx)
-                hix = (width - cx) / fx + 0.3 * tanx
-                loy = -(cy / fy + 0.3 * tany)
-                hiy = (height - cy) / fy + 0.3 * tany
-                clx = xr < lox or xr > hix
-                cly = yr < loy or yr > hiy
-                ux = _clamp(xr, lox, hix)
-                uy = _clamp(yr, loy, hiy)
-                j00 = fx * rz
-                j02 = -fx * ux * rz
-                j11 = fy * rz
-                j12 = -fy * uy * rz
-                a00 = j00 * m00 + j02 * m20
-                a01 = j00 * m01 + j02 * m21
-                a02 = j00 * m02 + j02 * m22
-                a10 = j11 * m10 + j12 * m20
-                a11 = j11 * m11 + j12 * m21
-                a12 = j11 * m12 + j12 * m22
-                sa = a00 * a00 + a01 * a01 + a02 * a02 + BLUR
-                sb = a00 * a10 + a01 * a11 + a02 * a12
-                sc = a10 * a10 + a11 * a11 + a12 * a12 + BLUR
+                j00, j02, j11, j12, ux, uy, clx, cly = _jacobian(px, py, rz, fx, fy, cx, cy, width, height)
+                a00, a01, a02, a10, a11, a12, sa, sb, sc = _cov2d(j00, j02, j11, j12, m00, m01, m02, m10, m11, m12,
+                                                                  m20, m21, m22)
                 idet = 1.0 / (sa * sc - sb * sb)
                 ca = sc * idet
                 cb = -sb * idet

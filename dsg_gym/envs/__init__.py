@@ -1,0 +1,22 @@
+"""Gymnasium environments. ``DSGWorld-v0`` (:class:`~dsg_gym.envs.dsg_world.DSGWorldEnv`) is registered when
+``dsg_gym`` is imported; importing this package is light (MuJoCo and the renderer load with the env)."""
+
+import gymnasium
+
+__all__ = ["register_envs", "ENV_ID", "MAX_EPISODE_STEPS"]
+
+ENV_ID = "DSGWorld-v0"
+MAX_EPISODE_STEPS = 200
+
+
+def register_envs() -> None:
+    """Register ``DSGWorld-v0`` (idempotent)."""
+    if ENV_ID not in gymnasium.registry:
+        gymnasium.register(
+            id=ENV_ID,
+            entry_point="dsg_gym.envs.dsg_world:DSGWorldEnv",
+            max_episode_steps=MAX_EPISODE_STEPS,
+        )
+
+
+register_envs()

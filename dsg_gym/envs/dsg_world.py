@@ -1,0 +1,460 @@
+"""``DSGWorld-v0``: rearrange the objects of a Gaussian world; splat-rendered observations."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from ..poses import (
+    as_poses7,
+    axis_angle_to_quat,
+    matrix_to_pose7,
+    pose7_to_matrix,
+    quat_multiply,
+    quat_normalize,
+    yaw_to_quat,
+)
+from ..world_model import Cameras, WorldModel
+from .tasks import RearrangementTask, TaskParams
+
+__all__ = ["DSGWorldEnv", "DEFAULT_WORLD", "load_default_world"]
+
+#: the bundled world: a geometry world of ``assets/scenes/two_blocks.json`` (``train_world.geom_world``)
+DEFAULT_WORLD = Path(__file__).resolve().parents[2] / "assets" / "worlds" / "default_geom.dsgworld"
+OBS_KEYS = ("rgb", "mask", "depth", "poses")
+ACTION_MODES = ("delta", "se3", "absolute")
+COLLISION_MODES = ("reject", "settle", "ignore")
+RESET_OPTIONS = ("start", "goal")
+_WORLD_CACHE: dict[str, WorldModel] = {}
+
+
+def load_default_world() -> WorldModel:
+    """The bundled world (cached per process); built in memory from its scene if the file is missing or
+    unreadable (regenerate it with ``python -m train_world.geom_world --out assets/worlds/default_geom.dsgworld``)."""
+    key = str(DEFAULT_WORLD)
+    if key not in _WORLD_CACHE:
+        try:
+            _WORLD_CACHE[key] = WorldModel.load(DEFAULT_WORLD)
+        except ValueError as e:  # missing or outdated asset: build the same world in memory (a few seconds)
+            gym.logger.warn(f"bundled world unusable ({e}); building it from assets/scenes/two_blocks.json")
+            from train_world.geom_world import build_geom_world
+
+            _WORLD_CACHE[key] = build_geom_world("two_blocks")
+    return _WORLD_CACHE[key]
+
+
+def _resolve_world(world) -> WorldModel:
+    if world is None:
+        return load_default_world()
+    if isinstance(world, WorldModel):
+        return world
+    if isinstance(world, (str, Path)):
+        key = str(Path(world).resolve())
+        if key not in _WORLD_CACHE:
+            _WORLD_CACHE[key] = WorldModel.load(world)  # WorldModelError (a ValueError) names the file
+        return _WORLD_CACHE[key]
+    raise ValueError(f"world must be None, a path or a WorldModel, got {type(world).__name__}")
+
+
+def _look_at(spec: Mapping[str, Any], width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    unknown = set(spec) - {"eye", "target", "up", "fovy_deg"}
+    if unknown or "eye" not in spec or "target" not in spec:
+        raise ValueError(f"look-at camera spec needs 'eye' and 'target' (optional 'up', 'fovy_deg'); got {spec}")
+    eye = np.asarray(spec["eye"], dtype=np.float64)
+    target = np.asarray(spec["target"], dtype=np.float64)
+    up = np.asarray(spec.get("up", (0.0, 0.0, 1.0)), dtype=np.float64)
+    fovy = float(spec.get("fovy_deg", 50.0))
+    if eye.shape != (3,) or target.shape != (3,) or up.shape != (3,):
+        raise ValueError("look-at camera: eye, target and up must be 3-vectors")
+    if not (np.all(np.isfinite(eye)) and np.all(np.isfinite(target)) and np.all(np.isfinite(up))):
+        raise ValueError("look-at camera: non-finite eye/target/up")
+    if not 0.0 < fovy < 180.0:
+        raise ValueError(f"look-at camera: fovy_deg must lie in (0, 180), got {fovy}")
+    z = target - eye
+    if np.linalg.norm(z) < 1e-9:
+        raise ValueError("look-at camera: eye equals target")
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError("look-at camera: up is parallel to the viewing direction")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    vm = np.eye(4)
+    vm[:3, :3] = np.stack([x, y, z])
+    vm[:3, 3] = -vm[:3, :3] @ eye
+    f = 0.5 * height / np.tan(0.5 * np.deg2rad(fovy))
+    return vm, np.array([[f, 0.0, 0.5 * width], [0.0, f, 0.5 * height], [0.0, 0.0, 1.0]])
+
+
+def _resolve_cameras(cameras, capture: Cameras, width: int, height: int) -> tuple[Cameras, bool]:
+    """``(Cameras, multi)``: ``multi`` is False for a single camera given as an int, a dict or ``None``."""
+    cap = capture.resized(width, height)
+    multi = isinstance(cameras, (list, tuple))
+    items = list(cameras) if multi else [0 if cameras is None else cameras]
+    if not items:
+        raise ValueError("cameras: empty list")
+    vms, ks = [], []
+    for c in items:
+        if isinstance(c, (int, np.integer)) and not isinstance(c, bool):
+            if not 0 <= int(c) < len(cap):
+                raise ValueError(f"cameras: capture camera index {c} out of range [0, {len(cap)})")
+            vms.append(cap.viewmats[int(c)])
+            ks.append(cap.Ks[int(c)])
+        elif isinstance(c, Mapping):
+            vm, k = _look_at(c, width, height)
+            vms.append(vm)
+            ks.append(k)
+        else:
+            raise ValueError(f"cameras: expected a capture camera index or a look-at dict, got {c!r}")
+    return Cameras(np.stack(vms), np.stack(ks), width, height), multi
+
+
+def _positive_int(name: str, v) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or int(v) < 1:
+        raise ValueError(f"{name} must be a positive integer, got {v!r}")
+    return int(v)
+
+
+class DSGWorldEnv(gym.Env):
+    """Goal-conditioned rearrangement in a 3D Gaussian world model (``DSGWorld-v0``).
+
+    The objects of a DSG world (a static Gaussian background plus rigid Gaussian objects) are moved by the
+    actions; observations are splat renders (RGB, object-id masks, depth) from one or more cameras and the
+    object poses; a MuJoCo proxy (convex hulls of the objects' Gaussians on a table box) keeps moves
+    physically sensible. Rendering is incremental: only the 16x16 image tiles an object touches before or
+    after its move are recomposited, bit-identical to a full render.
+
+    ## Arguments (``gymnasium.make("DSGWorld-v0", **kwargs)``)
+
+    | kwarg | default | meaning |
+    | --- | --- | --- |
+    | ``world`` | ``None`` | ``None`` (the bundled geometry world of the ``two_blocks`` scene), a world file path, or a ``WorldModel`` |
+    | ``width``, ``height`` | 128, 128 | observation image size (pixels) |
+    | ``cameras`` | ``None`` | ``None`` = capture camera 0; an int (capture camera index); a look-at dict ``{"eye", "target", "up"?, "fovy_deg"?}``; or a **list** of these for V views (images get a leading V axis) |
+    | ``obs`` | ``("rgb", "mask", "poses")`` | any of ``rgb``, ``mask``, ``depth``, ``poses``; only these are rendered (``goal`` is always included) |
+    | ``action_mode`` | ``"delta"`` | ``"delta"``, ``"se3"`` or ``"absolute"`` (see Action space) |
+    | ``collision`` | ``"reject"`` | ``"reject"``: a move that interpenetrates or leaves the table is undone for the objects involved (``info["rejected"]``); ``"settle"``: out-of-table moves are undone, then MuJoCo lets every object fall and come to rest; ``"ignore"``: any move is accepted (collisions are still reported in ``info``) |
+    | ``max_translation`` | 0.02 | metres per step at action 1 (``delta``, ``se3``) |
+    | ``max_rotation`` | 0.2 | radians per step at action 1 (``delta``: yaw, ``se3``: axis-angle norm per component) |
+    | ``task`` | ``TaskParams()`` | tolerances and reward weights (:class:`~dsg_gym.envs.tasks.TaskParams` or a dict of its fields) |
+    | ``incremental`` | ``True`` | incremental rendering (``False``: full render every step; same images) |
+    | ``render_mode`` | ``None`` | ``"rgb_array"``: ``render()`` returns uint8 ``(render_height, render_width * V, 3)`` |
+    | ``render_width``, ``render_height`` | 256, 256 | size of ``render()`` images |
+    | ``background_color`` | ``(0, 0, 0)`` | RGB in [0, 1] behind all Gaussians |
+    | ``max_episode_steps`` | ``None`` | internal truncation (``gymnasium.make`` adds a ``TimeLimit`` of 200 steps anyway) |
+
+    ## Action space
+
+    ``Box(-1, 1, (K * n,), float32)`` for K objects, ``n`` numbers per object (object k owns entries
+    ``[k*n, (k+1)*n)``). Values are clipped to [-1, 1]; NaN/Inf or a wrong shape raise ``ValueError``.
+
+    | ``action_mode`` | n | per object | scaling |
+    | --- | --- | --- | --- |
+    | ``delta`` | 4 | ``dx, dy, dz, dyaw`` in the world frame | ``max_translation`` m, ``max_rotation`` rad |
+    | ``se3`` | 6 | ``dx, dy, dz`` and an axis-angle ``rx, ry, rz`` (world frame, applied about the object origin) | same |
+    | ``absolute`` | 7 | target ``x, y, z, qw, qx, qy, qz`` | x/y span the table bounds, z spans ``[table, table + 0.3 m]``; the quaternion is normalised (zero: ``ValueError``) |
+
+    An object whose action entries are all zero (``delta``/``se3``) does not move (and is not re-rendered).
+
+    ## Observation space (``Dict``)
+
+    | key | space | meaning |
+    | --- | --- | --- |
+    | ``rgb`` | ``Box(0, 255, (H, W, 3), uint8)`` | splat-rendered colour |
+    | ``mask`` | ``Box(0, K, (H, W), uint8)`` | object id per pixel (0 = background, k = object k) |
+    | ``depth`` | ``Box(0, inf, (H, W), float32)`` | expected z-depth in metres (0 where nothing is hit) |
+    | ``poses`` | ``Box(-inf, inf, (K, 7), float64)`` | object poses ``x, y, z, qw, qx, qy, qz`` (unit quaternion, ``qw >= 0``) |
+    | ``goal`` | ``Box(-inf, inf, (K, 7), float64)`` | goal poses, same layout |
+
+    With a list of V cameras the image entries get a leading ``V`` axis.
+
+    ## Episodes
+
+    ``reset(seed=..., options=...)`` samples a valid start and goal (:mod:`dsg_gym.envs.tasks`); ``options``
+    may give ``start`` and/or ``goal`` as a captured state's name (e.g. ``"state1"``, ``"state2"``) or poses
+    ``[K,7]`` / ``[K,4,4]``; other keys raise ``ValueError``. Reward: dense, from the pose error (see
+    :mod:`~dsg_gym.envs.tasks`). ``terminated`` on success (all objects within the position and rotation
+    tolerances); ``truncated`` after ``max_episode_steps``. ``info``: ``success``, ``position_errors``,
+    ``rotation_errors`` (``[K]``), ``collision`` (the requested move interpenetrated or left the table),
+    ``rejected`` (``[K]`` bool: moves undone), ``penetrating_pairs``, ``out_of_bounds``, ``settled``.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        world=None,
+        width: int = 128,
+        height: int = 128,
+        cameras=None,
+        obs: Sequence[str] = ("rgb", "mask", "poses"),
+        action_mode: str = "delta",
+        collision: str = "reject",
+        max_translation: float = 0.02,
+        max_rotation: float = 0.2,
+        task: TaskParams | Mapping[str, Any] | None = None,
+        incremental: bool = True,
+        render_mode: str | None = None,
+        render_width: int = 256,
+        render_height: int = 256,
+        background_color=(0.0, 0.0, 0.0),
+        max_episode_steps: int | None = None,
+    ):
+        super().__init__()
+        from ..physics import PhysicsProxy  # MuJoCo; the renderer (numba) is imported below
+
+        self.width, self.height = _positive_int("width", width), _positive_int("height", height)
+        self.render_width = _positive_int("render_width", render_width)
+        self.render_height = _positive_int("render_height", render_height)
+        if isinstance(obs, str):
+            obs = (obs,)
+        obs = tuple(obs)
+        bad = [o for o in obs if o not in OBS_KEYS]
+        if bad or not obs or len(set(obs)) != len(obs):
+            raise ValueError(f"obs must be distinct entries of {OBS_KEYS}, got {obs}")
+        self.obs_keys = obs
+        if action_mode not in ACTION_MODES:
+            raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {action_mode!r}")
+        if collision not in COLLISION_MODES:
+            raise ValueError(f"collision must be one of {COLLISION_MODES}, got {collision!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        for name, v in (("max_translation", max_translation), ("max_rotation", max_rotation)):
+            if not np.isfinite(v) or v <= 0:
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        if max_episode_steps is not None:
+            max_episode_steps = _positive_int("max_episode_steps", max_episode_steps)
+        bgc = np.asarray(background_color, dtype=np.float64)
+        if bgc.shape != (3,) or not np.all(np.isfinite(bgc)) or bgc.min() < 0 or bgc.max() > 1:
+            raise ValueError(f"background_color must be 3 numbers in [0, 1], got {background_color!r}")
+        if isinstance(task, Mapping):
+            task = TaskParams(**task)
+        elif task is not None and not isinstance(task, TaskParams):
+            raise ValueError(f"task must be a TaskParams or a dict of its fields, got {type(task).__name__}")
+
+        self.world = _resolve_world(world)
+        self.cameras, self._multi = _resolve_cameras(cameras, self.world.cameras, self.width, self.height)
+        self.action_mode, self.collision = action_mode, collision
+        self.max_translation, self.max_rotation = float(max_translation), float(max_rotation)
+        self.incremental = bool(incremental)
+        self.render_mode = render_mode
+        self.background_color = tuple(float(c) for c in bgc)
+        self.max_episode_steps = max_episode_steps
+        self.physics = PhysicsProxy(self.world)
+        ref = next(iter(self.world.states.values()), None)
+        ref_q = matrix_to_pose7(ref)[:, 3:] if ref is not None else np.tile([1.0, 0, 0, 0], (self.world.num_objects, 1))
+        self.task = RearrangementTask(self.physics, ref_q, task)
+        self.K = self.world.num_objects
+
+        n = {"delta": 4, "se3": 6, "absolute": 7}[action_mode]
+        self._n = n
+        self.action_space = spaces.Box(-1.0, 1.0, (self.K * n,), np.float32)
+        v = len(self.cameras)
+        lead = (v,) if self._multi else ()
+        hw = lead + (self.height, self.width)
+        space: dict[str, spaces.Space] = {}
+        if "rgb" in obs:
+            space["rgb"] = spaces.Box(0, 255, hw + (3,), np.uint8)
+        if "mask" in obs:
+            space["mask"] = spaces.Box(0, self.K, hw, np.uint8)
+        if "depth" in obs:
+            space["depth"] = spaces.Box(0.0, np.inf, hw, np.float32)
+        if "poses" in obs:
+            space["poses"] = spaces.Box(-np.inf, np.inf, (self.K, 7), np.float64)
+        space["goal"] = spaces.Box(-np.inf, np.inf, (self.K, 7), np.float64)
+        self.observation_space = spaces.Dict(space)
+
+        self._renderer = None
+        self._view_renderer = None
+        self._poses: np.ndarray | None = None
+        self._goal: np.ndarray | None = None
+        self._steps = 0
+        self._closed = False
+
+    # ------------------------------------------------------------------ rendering
+    def _make_renderer(self, cams: Cameras):
+        from ..scene_renderer import SceneRenderer
+
+        w = self.world
+        return SceneRenderer(
+            w.background, list(w.objects), cams.viewmats, cams.Ks, cams.width, cams.height,
+            background_color=self.background_color,
+        )  # fmt: skip
+
+    @property
+    def renderer(self):
+        """The observation renderer (created on first use)."""
+        if self._renderer is None:
+            self._renderer = self._make_renderer(self.cameras)
+        return self._renderer
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        obs: dict[str, np.ndarray] = {}
+        want = {k: k in self.obs_keys for k in ("rgb", "mask", "depth")}
+        if any(want.values()):
+            out = self.renderer.render(
+                pose7_to_matrix(self._poses), rgb=want["rgb"], mask=want["mask"], depth=want["depth"],
+                incremental=self.incremental,
+            )  # fmt: skip
+            for key in ("rgb", "mask", "depth"):
+                if want[key]:
+                    img = getattr(out, key)
+                    obs[key] = img if self._multi else img[0]
+        if "poses" in self.obs_keys:
+            obs["poses"] = self._poses.copy()
+        obs["goal"] = self._goal.copy()
+        return obs
+
+    def render(self):
+        """``rgb_array``: uint8 ``(render_height, render_width * V, 3)`` of the current state (V views side by
+        side); ``None`` without a render mode."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
+        if self._poses is None:
+            raise gym.error.ResetNeeded("call reset() before render()")
+        if self._view_renderer is None:
+            c = self.cameras
+            sx, sy = self.render_width / c.width, self.render_height / c.height
+            ks = c.Ks.copy()
+            ks[:, 0] *= sx
+            ks[:, 1] *= sy
+            self._view_renderer = self._make_renderer(Cameras(c.viewmats, ks, self.render_width, self.render_height))
+        out = self._view_renderer.render(pose7_to_matrix(self._poses), rgb=True, mask=False, depth=False)
+        return np.concatenate(list(out.rgb), axis=1)
+
+    # ------------------------------------------------------------------ episodes
+    def _pose_option(self, name: str, value) -> np.ndarray:
+        if isinstance(value, str):
+            if value not in self.world.states:
+                raise ValueError(f"options[{name!r}]: unknown state {value!r}; this world has {sorted(self.world.states)}")
+            return matrix_to_pose7(self.world.states[value])
+        return as_poses7(value, self.K, f"options[{name!r}]")
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if options is not None and not isinstance(options, Mapping):
+            raise ValueError(f"options must be a dict, got {type(options).__name__}")
+        options = dict(options or {})
+        unknown = sorted(set(options) - set(RESET_OPTIONS))
+        if unknown:
+            raise ValueError(f"unknown reset options {unknown}; expected any of {RESET_OPTIONS}")
+        start = self._pose_option("start", options["start"]) if options.get("start") is not None else None
+        goal = self._pose_option("goal", options["goal"]) if options.get("goal") is not None else None
+        super().reset(seed=seed)
+        rng = self.np_random
+        if start is None:
+            start = self.task.sample_configuration(rng)
+        if goal is None:
+            goal = self.task.sample_goal(rng, start)
+        self._poses, self._goal, self._steps = start, goal, 0
+        report = self.physics.check(start, distance=False)
+        info = self._info(np.zeros(self.K, bool), report, collided=False, settled=False)
+        return self._observe(), info
+
+    def _info(self, rejected, report, collided: bool, settled: bool) -> dict[str, Any]:
+        pe, re = self.task.errors(self._poses, self._goal)
+        p = self.task.params
+        return {
+            "success": bool(np.all(pe <= p.position_tolerance) and np.all(re <= p.rotation_tolerance)),
+            "position_errors": pe,
+            "rotation_errors": re,
+            "collision": bool(collided),
+            "rejected": rejected,
+            "penetrating_pairs": np.array(report.penetrating, dtype=np.int64).reshape(-1, 2),
+            "out_of_bounds": np.array(report.out_of_bounds, dtype=np.int64),
+            "settled": bool(settled),
+        }
+
+    # ------------------------------------------------------------------ actions
+    def _check_action(self, action) -> np.ndarray:
+        try:
+            a = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"action must be numeric, got {type(action).__name__}") from None
+        if a.shape != self.action_space.shape:
+            raise ValueError(f"action has shape {a.shape}, expected {self.action_space.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError("action contains NaN or Inf")
+        return np.clip(a, -1.0, 1.0).reshape(self.K, self._n)
+
+    def _target(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate poses ``[K,7]`` and which objects the action moves."""
+        p = self._poses.copy()
+        if self.action_mode == "absolute":
+            t = self.world.table
+            lo = np.array([t.xmin, t.ymin, t.z])
+            hi = np.array([t.xmax, t.ymax, t.z + 0.3])
+            q = a[:, 3:7]
+            if np.any(np.linalg.norm(q, axis=1) < 1e-6):
+                raise ValueError("absolute action: a target quaternion is zero")
+            p[:, :3] = lo + 0.5 * (a[:, :3] + 1.0) * (hi - lo)
+            p[:, 3:] = quat_normalize(q)
+            moved = np.any(p != self._poses, axis=1)
+            return p, moved
+        moved = np.any(a != 0.0, axis=1)
+        idx = np.flatnonzero(moved)
+        if idx.size == 0:
+            return p, moved
+        p[idx, :3] += self.max_translation * a[idx, :3]
+        if self.action_mode == "delta":
+            dq = yaw_to_quat(self.max_rotation * a[idx, 3])
+        else:
+            dq = axis_angle_to_quat(self.max_rotation * a[idx, 3:6])
+        p[idx, 3:] = quat_normalize(quat_multiply(dq, p[idx, 3:]))
+        return p, moved
+
+    def step(self, action):
+        if self._poses is None:
+            raise gym.error.ResetNeeded("call reset() before step()")
+        a = self._check_action(action)
+        cand, moved = self._target(a)  # may raise ValueError; nothing changed yet
+        rejected = np.zeros(self.K, dtype=bool)
+        report = self.physics.check(cand, distance=False)
+        collided = not report.ok
+        settled = False
+        if self.collision == "reject":
+            cand, rejected, report = self._reject(cand, moved, report, bounds_only=False)
+        elif self.collision == "settle":
+            cand, rejected, _ = self._reject(cand, moved, report, bounds_only=True)
+            if moved.any():
+                cand = self.physics.settle(cand)
+                settled = True
+                # resting poses that leave the table (pushed off) are undone as well
+                report = self.physics.check(cand, distance=False)
+                cand, more, report = self._reject(cand, np.ones(self.K, bool), report, bounds_only=True,
+                                                  previous=self._poses)  # fmt: skip
+                rejected |= more
+        self._poses = cand
+        self._steps += 1
+        reward, success = self.task.reward(self._poses, self._goal, collided)
+        truncated = self.max_episode_steps is not None and self._steps >= self.max_episode_steps
+        info = self._info(rejected, report, collided, settled)
+        return self._observe(), reward, success, bool(truncated and not success), info
+
+    def _reject(self, cand, moved, report, bounds_only: bool, previous=None):
+        """Undo the moves of the moved objects involved in a violation until the configuration is valid."""
+        prev = self._poses if previous is None else previous
+        rejected = np.zeros(self.K, dtype=bool)
+        for _ in range(self.K + 1):
+            bad = set(report.out_of_bounds)
+            if not bounds_only:
+                bad |= set(report.objects_in_collision())
+            bad = [k for k in sorted(bad) if moved[k] and not rejected[k]]
+            if not bad:
+                break
+            cand = cand.copy()
+            cand[bad] = prev[bad]
+            rejected[bad] = True
+            report = self.physics.check(cand, distance=False)
+        return cand, rejected, report
+
+    def close(self):
+        self._renderer = None
+        self._view_renderer = None
+        self._closed = True
+        super().close()

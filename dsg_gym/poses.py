@@ -1,0 +1,162 @@
+"""Rigid poses in float64 numpy for the runtime (the environment's hot path avoids torch).
+
+Same conventions as :mod:`dsg_gym.geometry` (which is the batched torch version used in training): quaternions
+``w, x, y, z`` (Hamilton, ``quat_multiply(a, b)`` applies ``b`` first), poses are 7-vectors
+``(x, y, z, qw, qx, qy, qz)`` taking object-frame points to the world, 4x4 matrices ``[[R, t], [0, 1]]``.
+Every function that reads a quaternion renormalises it; returned quaternions have ``w >= 0``. All functions
+accept any leading batch dimensions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "as_poses7",
+    "axis_angle_to_quat",
+    "matrix_to_pose7",
+    "pose7_to_matrix",
+    "quat_angle",
+    "quat_multiply",
+    "quat_normalize",
+    "quat_to_rotmat",
+    "rotmat_to_quat",
+    "yaw_of_quat",
+    "yaw_to_quat",
+]
+
+
+def quat_normalize(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
+    """Unit quaternions with ``w >= 0`` (float64); ValueError for a (near-)zero or non-finite one."""
+    q = np.asarray(q, dtype=np.float64)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if not np.all(np.isfinite(q)) or np.any(n <= eps):
+        raise ValueError("quaternion is zero or not finite")
+    q = q / n
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a * b`` (rotation ``b`` first), not renormalised."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """``[..., 4] -> [..., 3, 3]`` (renormalises)."""
+    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
+    r = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )  # fmt: skip
+    return r.reshape(*r.shape[:-1], 3, 3)
+
+
+def rotmat_to_quat(r: np.ndarray) -> np.ndarray:
+    """``[..., 3, 3] -> [..., 4]`` unit quaternion with ``w >= 0`` (Shepperd's method, stable everywhere)."""
+    r = np.asarray(r, dtype=np.float64)
+    shape = r.shape[:-2]
+    m = r.reshape(-1, 3, 3)
+    m00, m01, m02 = m[:, 0, 0], m[:, 0, 1], m[:, 0, 2]
+    m10, m11, m12 = m[:, 1, 0], m[:, 1, 1], m[:, 1, 2]
+    m20, m21, m22 = m[:, 2, 0], m[:, 2, 1], m[:, 2, 2]
+    tr = m00 + m11 + m22
+    # four candidate (unnormalised) quaternions, each well conditioned when its diagonal term is largest
+    cands = np.stack(
+        [
+            np.stack([1.0 + tr, m21 - m12, m02 - m20, m10 - m01], axis=1),
+            np.stack([m21 - m12, 1.0 + m00 - m11 - m22, m01 + m10, m02 + m20], axis=1),
+            np.stack([m02 - m20, m01 + m10, 1.0 + m11 - m00 - m22, m12 + m21], axis=1),
+            np.stack([m10 - m01, m02 + m20, m12 + m21, 1.0 + m22 - m00 - m11], axis=1),
+        ],
+        axis=1,
+    )
+    pick = np.argmax(np.stack([tr, m00, m11, m22], axis=1), axis=1)
+    q = cands[np.arange(m.shape[0]), pick]
+    return quat_normalize(q).reshape(*shape, 4)
+
+
+def axis_angle_to_quat(v: np.ndarray) -> np.ndarray:
+    """Rotation vectors ``[..., 3]`` (axis times angle, radians) -> unit quaternions ``[..., 4]``."""
+    v = np.asarray(v, dtype=np.float64)
+    angle = np.linalg.norm(v, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(half)/angle with its Taylor series near 0
+    k = np.where(angle > 1e-8, np.sin(half) / np.where(angle > 1e-8, angle, 1.0), 0.5 - angle**2 / 48.0)
+    return quat_normalize(np.concatenate([np.cos(half), v * k], axis=-1))
+
+
+def yaw_to_quat(yaw: np.ndarray) -> np.ndarray:
+    """Rotations by ``yaw`` radians about +z, ``[...] -> [..., 4]``."""
+    yaw = np.asarray(yaw, dtype=np.float64)
+    z = np.zeros_like(yaw)
+    return quat_normalize(np.stack([np.cos(0.5 * yaw), z, z, np.sin(0.5 * yaw)], axis=-1))
+
+
+def yaw_of_quat(q: np.ndarray) -> np.ndarray:
+    """Heading (radians) of the rotated x axis projected on the xy plane, ``[..., 4] -> [...]``."""
+    r = quat_to_rotmat(q)
+    return np.arctan2(r[..., 1, 0], r[..., 0, 0])
+
+
+def quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (radians, in [0, pi]) of the rotation taking ``b`` to ``a``."""
+    d = np.abs(np.sum(quat_normalize(a) * quat_normalize(b), axis=-1))
+    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+
+
+def pose7_to_matrix(p: np.ndarray) -> np.ndarray:
+    """``[..., 7] -> [..., 4, 4]`` float64 (the quaternion is renormalised)."""
+    p = np.asarray(p, dtype=np.float64)
+    m = np.zeros(p.shape[:-1] + (4, 4))
+    m[..., :3, :3] = quat_to_rotmat(p[..., 3:7])
+    m[..., :3, 3] = p[..., :3]
+    m[..., 3, 3] = 1.0
+    return m
+
+
+def matrix_to_pose7(m: np.ndarray) -> np.ndarray:
+    """``[..., 4, 4] -> [..., 7]`` float64 with a unit quaternion, ``w >= 0``."""
+    m = np.asarray(m, dtype=np.float64)
+    return np.concatenate([m[..., :3, 3], rotmat_to_quat(m[..., :3, :3])], axis=-1)
+
+
+def as_poses7(value, k: int, name: str = "poses") -> np.ndarray:
+    """Validate ``[k, 7]`` poses or ``[k, 4, 4]`` rigid transforms -> ``[k, 7]`` float64, renormalised.
+
+    ValueError naming ``name`` for a wrong shape, non-finite values, a zero quaternion or a non-rigid matrix.
+    """
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape == (k, 4, 4):
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name}: contains NaN or Inf")
+        r = arr[:, :3, :3]
+        if np.abs(r.transpose(0, 2, 1) @ r - np.eye(3)).max() > 1e-5 or np.any(np.linalg.det(r) < 0):
+            raise ValueError(f"{name}: matrices are not rigid transforms")
+        if np.abs(arr[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+            raise ValueError(f"{name}: last row of a transform must be (0, 0, 0, 1)")
+        return matrix_to_pose7(arr)
+    if arr.shape != (k, 7):
+        raise ValueError(f"{name}: expected shape ({k}, 7) or ({k}, 4, 4), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: contains NaN or Inf")
+    try:
+        q = quat_normalize(arr[:, 3:7])
+    except ValueError:
+        raise ValueError(f"{name}: a quaternion is zero") from None
+    return np.concatenate([arr[:, :3], q], axis=1)

@@ -1,0 +1,163 @@
+"""Environment step throughput: ``python -m benchmarks.env_step --out step.json``.
+
+Single ``DSGWorld-v0`` on the bundled world at 128x128 with ``obs=("rgb", "mask")``, random moves of one
+object per step (``collision="reject"``), with incremental and with full rendering; MuJoCo's own EGL render
+(RGB + segmentation) of the matching synthetic scene at the same size with one object moved per frame; and
+an ``AsyncVectorEnv`` (shared memory) with 2 workers. All in one run; rates are medians over repeats.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+
+import dsg_gym  # noqa: E402,F401  registers DSGWorld-v0
+
+TARGET_STEPS = 500.0
+TARGET_RATIO = 3.0
+
+
+def _one_object_actions(rng: np.random.Generator, n: int, k: int, per: int = 4) -> np.ndarray:
+    a = np.zeros((n, k * per), np.float32)
+    obj = rng.integers(k, size=n)
+    for i, o in enumerate(obj):
+        a[i, o * per : (o + 1) * per] = rng.uniform(-1, 1, per)
+    return a
+
+
+def env_rate(incremental: bool, size: int, steps: int, repeats: int, seed: int = 0) -> dict:
+    env = gym.make("DSGWorld-v0", width=size, height=size, obs=("rgb", "mask"), incremental=incremental)
+    k = env.unwrapped.K
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    for a in _one_object_actions(rng, 30, k):  # warm-up (numba load, caches)
+        env.step(a)
+    rates, tiles, rejected = [], [], 0
+    for _ in range(repeats):
+        acts = _one_object_actions(rng, steps, k)
+        t0 = time.perf_counter()
+        for a in acts:
+            _, _, term, trunc, info = env.step(a)
+            rejected += int(info["rejected"].any())
+            tiles.append(env.unwrapped.renderer.last_dirty_tiles)
+            if term or trunc:
+                env.reset()
+        rates.append(steps / (time.perf_counter() - t0))
+    env.close()
+    return {
+        "steps_per_s": float(np.median(rates)),
+        "runs": [round(r, 1) for r in rates],
+        "mean_tiles_recomposited": float(np.mean(tiles)),
+        "rejected_fraction": rejected / (steps * repeats),
+    }
+
+
+def mujoco_rate(size: int, frames: int, repeats: int, seed: int = 0) -> dict:
+    import mujoco
+
+    from train_world.geom_world import capture_cameras
+    from train_world.synth import resolve_scene
+    from train_world.synth.build import build_scene, set_object_poses
+    from train_world.synth.generate import rng_for
+    from train_world.synth.render import SceneRenderer
+    from train_world.synth.states import sample_states
+
+    spec = resolve_scene("two_blocks")
+    built = build_scene(spec, size, size)
+    data = mujoco.MjData(built.model)
+    poses = sample_states(spec, rng_for(0, "states"), 3)["state1"]
+    c2w, _ = capture_cameras(spec, 0, "state1", 1, size, size)
+    rng = np.random.default_rng(seed)
+    rates = []
+    with SceneRenderer(built, size, size) as r:
+        for _ in range(10):
+            r.render(data, c2w[0], rgb=True, seg=True, depth=False)
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            for _ in range(frames):
+                p = poses.copy()
+                k = rng.integers(len(p))
+                p[k, :2, 3] += rng.uniform(-0.02, 0.02, 2)
+                set_object_poses(built, data, p)
+                r.render(data, c2w[0], rgb=True, seg=True, depth=False)
+            rates.append(frames / (time.perf_counter() - t0))
+    return {"frames_per_s": float(np.median(rates)), "runs": [round(r, 1) for r in rates]}
+
+
+def async_rate(size: int, steps: int, repeats: int, workers: int = 2) -> dict:
+    envs = gym.make_vec(
+        "DSGWorld-v0",
+        num_envs=workers,
+        vectorization_mode="async",
+        vector_kwargs={"shared_memory": True},
+        width=size,
+        height=size,
+        obs=("rgb", "mask"),
+    )
+    envs.reset(seed=list(range(workers)))
+    k = envs.get_attr("K")[0]
+    rng = np.random.default_rng(0)
+
+    def batch():
+        return np.stack([_one_object_actions(rng, 1, k)[0] for _ in range(workers)])
+
+    for _ in range(20):
+        envs.step(batch())
+    rates = []
+    for _ in range(repeats):
+        acts = [batch() for _ in range(steps)]
+        t0 = time.perf_counter()
+        for a in acts:
+            envs.step(a)
+        rates.append(workers * steps / (time.perf_counter() - t0))
+    envs.close()
+    return {"workers": workers, "env_steps_per_s": float(np.median(rates)), "runs": [round(r, 1) for r in rates]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="step.json")
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args(argv)
+    inc = env_rate(True, args.size, args.steps, args.repeats)
+    full = env_rate(False, args.size, args.steps, args.repeats)
+    mj = mujoco_rate(args.size, args.steps, args.repeats)
+    vec = async_rate(args.size, args.steps // 2, args.repeats)
+    ratio = inc["steps_per_s"] / mj["frames_per_s"]
+    result = {
+        "benchmark": "env_step",
+        "size": [args.size, args.size],
+        "obs": ["rgb", "mask"],
+        "world": "bundled (geometry world of two_blocks)",
+        "incremental": inc,
+        "full": full,
+        "mujoco_egl_rgb_seg": mj,
+        "async_vector_env": vec,
+        "incremental_over_full": inc["steps_per_s"] / full["steps_per_s"],
+        "incremental_over_mujoco": ratio,
+        "targets": {
+            "incremental_steps_per_s": TARGET_STEPS,
+            "incremental_over_mujoco": TARGET_RATIO,
+            "met_steps": inc["steps_per_s"] >= TARGET_STEPS,
+            "met_ratio": ratio >= TARGET_RATIO,
+        },
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+    }
+    with open(args.out, "w") as f:
+        json.dump(result, f, indent=2)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,260 @@
+"""The world file: a trained DSG world (background + per-object Gaussians, object poses, cameras).
+
+One safetensors file (no pickle; loads without executing code and without torch). Its header metadata has one
+entry, ``dsg_world``: a JSON document with ``format = "dsg-world"``, ``format_version`` (1) and the
+description below; the tensors are:
+
+=====================================  ===================  ================================================
+tensor                                 shape / dtype        meaning
+=====================================  ===================  ================================================
+``gaussians/background/<field>``       see GaussianSet      background Gaussians, world frame
+``gaussians/object_<id>/<field>``      see GaussianSet      object ``id``'s Gaussians in the object's frame
+``poses/<state>``                      [K,4,4] float64      world-from-object pose per object (rows follow
+                                                            the sorted object ids) in each captured state
+``cameras/<state>/viewmats``           [V,4,4] float32      capture cameras, OpenCV world-to-camera
+``cameras/<state>/Ks``                 [V,3,3] float32      intrinsics (pixel centres at +0.5)
+``classifier/weight``, ``/bias``       [K+1,F], [K+1] f32   identity classifier (class 0 = background)
+=====================================  ===================  ================================================
+
+``<field>`` is ``means quats scales opacities sh features labels`` and optionally ``opacity_logits
+log_scales`` (the exact raw values). The JSON document lists the objects ``[{id, name, class}]``, the states,
+camera sizes, units, ``metadata`` (training config, source, ...) and a SHA-256 of the tensor bytes, so a
+truncated or altered file is refused with :class:`WorldFormatError`, as is an unknown format version.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import struct
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from .gaussians import GaussianSet
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "GAUSSIAN_FIELDS",
+    "Cameras",
+    "World",
+    "WorldObject",
+    "WorldFormatError",
+    "load_world",
+    "parse_world_bytes",
+    "transform_gaussians",
+]
+
+FORMAT_NAME = "dsg-world"
+FORMAT_VERSION = 1
+GAUSSIAN_FIELDS = ("means", "quats", "scales", "opacities", "sh", "features", "labels")
+OPTIONAL_FIELDS = ("opacity_logits", "log_scales")
+META_KEY = "dsg_world"  # the one safetensors metadata entry (one key: the header bytes are deterministic)
+
+
+class WorldFormatError(ValueError):
+    """A world file that cannot be read: truncated, corrupt, not a world file, or an unknown version."""
+
+
+class WorldObject(NamedTuple):
+    name: str
+    gaussians: GaussianSet  # in the object's own frame
+
+
+@dataclass(frozen=True, eq=False)
+class Cameras:
+    viewmats: np.ndarray  # [V,4,4] float32 world-to-camera (OpenCV)
+    Ks: np.ndarray  # [V,3,3] float32
+    width: int
+    height: int
+
+    def __len__(self) -> int:
+        return int(self.viewmats.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class World:
+    """A loaded world. ``objects``: ``{id: WorldObject(name, GaussianSet in object frame)}``; ``poses``:
+    ``{state: [K,4,4] float64}`` (rows follow ``object_ids``); ``cameras``: ``{state: Cameras}``."""
+
+    background: GaussianSet
+    objects: Mapping[int, WorldObject]
+    poses: Mapping[str, np.ndarray]
+    cameras: Mapping[str, Cameras]
+    classifier_weight: np.ndarray
+    classifier_bias: np.ndarray
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+    units: str = "unknown"
+    format_version: int = FORMAT_VERSION
+
+    def __post_init__(self) -> None:
+        k = len(self.objects)
+        for s, P in self.poses.items():
+            if P.shape != (k, 4, 4):
+                raise ValueError(f"World.poses[{s!r}]: shape {P.shape}, expected ({k}, 4, 4)")
+        if self.classifier_weight.ndim != 2 or self.classifier_bias.shape != (self.classifier_weight.shape[0],):
+            raise ValueError("World: classifier weight must be [K+1, F] and bias [K+1]")
+
+    @property
+    def object_ids(self) -> tuple[int, ...]:
+        return tuple(sorted(self.objects))
+
+    @property
+    def object_names(self) -> tuple[str, ...]:
+        return tuple(self.objects[i].name for i in self.object_ids)
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.objects)
+
+    @property
+    def states(self) -> tuple[str, ...]:
+        return tuple(self.poses)
+
+    def gaussians(self, state: str | None = None, poses: np.ndarray | None = None) -> GaussianSet:
+        """All Gaussians in the world frame with objects placed at ``poses`` ``[K,4,4]`` (or those of
+        ``state``; default: the reference state the world was trained in). ``labels`` hold object ids."""
+        if poses is None:
+            state = state or self.metadata.get("reference_state") or next(iter(self.poses), None)
+            if state not in self.poses:
+                raise KeyError(f"world has no state {state!r} (states: {list(self.poses)})")
+            poses = self.poses[state]
+        poses = np.asarray(poses, dtype=np.float64)
+        if poses.shape != (self.num_objects, 4, 4):
+            raise ValueError(f"poses must be [{self.num_objects},4,4], got {poses.shape}")
+        parts = [self.background]
+        for row, oid in enumerate(self.object_ids):
+            g = self.objects[oid].gaussians
+            parts.append(transform_gaussians(g, poses[row]))
+        return GaussianSet.concat(parts).without_encodings() if len(parts) > 1 else parts[0]
+
+    def classify(self, features: np.ndarray) -> np.ndarray:
+        """Class logits ``[..., K+1]`` of identity features ``[..., F]``."""
+        return features @ self.classifier_weight.T + self.classifier_bias
+
+
+# ----------------------------------------------------------------------------------- numpy geometry
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def _rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    m = R
+    tr = np.trace(m)
+    cands = np.array([
+        [1 + tr, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]],
+        [m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]],
+        [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1]],
+        [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2]],
+    ])
+    q = cands[int(np.argmax([tr, m[0, 0], m[1, 1], m[2, 2]]))]
+    q = q / np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def transform_gaussians(g: GaussianSet, T: np.ndarray) -> GaussianSet:
+    """``g`` moved by the rigid transform ``T`` ``[4,4]`` (float64 arithmetic; SH bands are not rotated)."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    means = g.means.astype(np.float64) @ R.T + t
+    quats = _quat_mul(_rotmat_to_quat(R)[None], g.quats.astype(np.float64))
+    return GaussianSet(means, quats, g.scales, g.opacities, g.sh, g.features, g.labels,
+                       opacity_logits=g.opacity_logits, log_scales=g.log_scales)
+
+
+# ----------------------------------------------------------------------------------- reading
+_DTYPES = {"F32": np.float32, "F64": np.float64, "I32": np.int32, "I64": np.int64, "U8": np.uint8}
+
+
+def _fail(src: str, msg: str) -> WorldFormatError:
+    return WorldFormatError(f"{src}: {msg}")
+
+
+def parse_world_bytes(data: bytes, src: str = "<bytes>") -> World:
+    """Decode a world file's bytes (see the module docstring); :class:`WorldFormatError` on any problem."""
+    if len(data) < 8:
+        raise _fail(src, f"truncated world file ({len(data)} bytes)")
+    (hlen,) = struct.unpack("<Q", data[:8])
+    if hlen > len(data) - 8:
+        raise _fail(src, f"truncated world file (header of {hlen} bytes, file has {len(data)})")
+    try:
+        header = json.loads(data[8 : 8 + hlen].decode("utf-8"))
+        meta = header.pop("__metadata__")
+    except (ValueError, KeyError, AttributeError, UnicodeDecodeError) as e:
+        raise _fail(src, f"not a world file (unreadable header: {e})") from e
+    try:
+        doc = json.loads(meta[META_KEY])
+    except (KeyError, TypeError, ValueError) as e:
+        raise _fail(src, f"not a world file (no {META_KEY!r} metadata: {e})") from e
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
+        raise _fail(src, f"not a world file (format {doc.get('format') if isinstance(doc, dict) else None!r})")
+    version = doc.get("format_version")
+    if version != FORMAT_VERSION:
+        raise _fail(src, f"unknown world format version {version!r} (this dsg_gym reads version {FORMAT_VERSION})")
+    body = memoryview(data)[8 + hlen :]
+    end = max((int(v["data_offsets"][1]) for v in header.values()), default=0)
+    if len(body) != end:
+        raise _fail(src, f"truncated or padded world file: tensor data is {len(body)} bytes, header needs {end}")
+    if hashlib.sha256(body).hexdigest() != doc.get("sha256"):
+        raise _fail(src, "checksum mismatch: the world file is corrupt")
+    arrays: dict[str, np.ndarray] = {}
+    for name, info in header.items():
+        if info.get("dtype") not in _DTYPES:
+            raise _fail(src, f"tensor {name!r} has unsupported dtype {info.get('dtype')!r}")
+        a, b = (int(x) for x in info["data_offsets"])
+        arr = np.frombuffer(body[a:b], dtype=np.dtype(_DTYPES[info["dtype"]]).newbyteorder("<"))
+        arrays[name] = arr.reshape(info["shape"]).astype(_DTYPES[info["dtype"]], copy=True)
+    try:
+        return _build(arrays, doc, version)
+    except KeyError as e:
+        raise _fail(src, f"missing tensor {e}") from e
+    except ValueError as e:
+        raise _fail(src, f"invalid content ({e})") from e
+
+
+def _gaussian_set(arrays: dict[str, np.ndarray], prefix: str) -> GaussianSet:
+    kw = {f: arrays[f"{prefix}/{f}"] for f in GAUSSIAN_FIELDS}
+    for f in OPTIONAL_FIELDS:
+        if f"{prefix}/{f}" in arrays:
+            kw[f] = arrays[f"{prefix}/{f}"]
+    return GaussianSet(**kw)
+
+
+def _build(arrays: dict[str, np.ndarray], doc: dict, version: int) -> World:
+    objects = {}
+    for o in doc["objects"]:
+        objects[int(o["id"])] = WorldObject(str(o["name"]), _gaussian_set(arrays, f"gaussians/object_{o['id']}"))
+    poses = {s: arrays[f"poses/{s}"] for s in doc["states"]}
+    cameras = {
+        s: Cameras(arrays[f"cameras/{s}/viewmats"], arrays[f"cameras/{s}/Ks"], int(c["width"]), int(c["height"]))
+        for s, c in doc["cameras"].items()
+    }
+    return World(
+        background=_gaussian_set(arrays, "gaussians/background"),
+        objects=MappingProxyType(objects),
+        poses=MappingProxyType(poses),
+        cameras=MappingProxyType(cameras),
+        classifier_weight=arrays["classifier/weight"],
+        classifier_bias=arrays["classifier/bias"],
+        metadata=MappingProxyType(doc.get("metadata", {})),
+        units=str(doc.get("units", "unknown")),
+        format_version=version,
+    )
+
+
+def load_world(path: str | Path) -> World:
+    """Read a world file written by ``train_world`` (``dsg-train``)."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as e:
+        raise WorldFormatError(f"{p}: cannot read world file ({e})") from e
+    return parse_world_bytes(data, str(p))

@@ -1,0 +1,94 @@
+"""dsg-eval: report files, metric definitions, refusal of bad worlds."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from train_world import evaluate as ev
+from train_world.recon import cli
+from train_world.synth.cli import main as synth_main
+
+LEGO = Path(__file__).resolve().parents[2] / "shared" / "external" / "nerf_synthetic_lego"
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    cap = root / "cap"
+    assert synth_main(["--scene", "three_primitives", "--out", str(cap), "--width", "32", "--height", "32",
+                       "--views", "10", "--test-views", "3", "--test-states", "1", "--quiet"]) == 0
+    world = root / "w.dsgw"
+    assert cli.main([str(cap), "--out", str(world), "--preset", "quick", "--iterations", "60",
+                     "--single-state", "--holdout-every", "4", "--quiet"]) == 0
+    return cap, world, root
+
+
+def test_report_of_heldout_views(trained):
+    cap, world, root = trained
+    out = root / "report"
+    assert ev.main([str(world), str(cap), "--out", str(out)]) == 0
+    r = json.loads((out / "report.json").read_text())
+    assert [v["index"] for v in r["per_view"]] == [0, 4, 8]  # every 4th view of state1 was held out
+    assert set(r["mean"]) == {"psnr", "ssim", "mask_iou"}
+    assert math.isfinite(r["mean"]["psnr"]) and 5 < r["mean"]["psnr"] < 60
+    assert -1 <= r["mean"]["ssim"] <= 1 and 0 <= r["mean"]["mask_iou"] <= 1
+    assert r["mean"]["psnr"] == pytest.approx(np.mean([v["psnr"] for v in r["per_view"]]))
+    assert set(r["object_iou"]) == {"yellow_box", "green_ball", "purple_capsule"}
+    md = (out / "report.md").read_text()
+    assert "| **mean** |" in md and md.count("\n| state1/") == 3
+    grid = Image.open(out / "grid.png")
+    # 3 rows of (GT | ours | error | GT mask | our mask), 32 px tiles with 2 px borders
+    assert grid.size == (5 * 34 + 2, 3 * 34 + 2)
+
+
+def test_novel_state_uses_its_object_poses(trained):
+    cap, world, root = trained
+    from dsg_gym.world import load_world
+    from train_world.data import load_capture
+
+    r_same = ev.evaluate(world, cap, root / "s1", state="state1")  # the training state: held-out views
+    r_test = ev.evaluate(world, cap, root / "t0", state="test_0")  # a test state: all its views
+    assert r_same["views"] == 3 and r_test["views"] == 3
+    assert all(v["view"].startswith("test_0/") for v in r_test["per_view"])
+    w, c = load_world(world), load_capture(cap, states=[])
+    assert np.array_equal(ev._poses_for(w, cap, "test_0"), c.poses["test_0"])
+    assert not np.allclose(c.poses["test_0"], w.poses["state1"])
+
+
+def test_metric_definitions():
+    rng = np.random.default_rng(0)
+    a = rng.random((16, 16, 3))
+    assert ev._psnr(a, a) == float("inf")
+    assert ev._psnr(a, np.clip(a + 0.1, 0, 1)) < 30
+    assert ev._ssim(a.astype(np.float32), a.astype(np.float32)) == pytest.approx(1.0)
+    gt = np.zeros((4, 4), np.int64)
+    gt[:2, :2] = 1
+    pred = np.zeros((4, 4), np.int64)
+    pred[:2, :3] = 1
+    ious = ev.mask_iou(pred, gt, range(1, 3))
+    assert ious[1] == pytest.approx(4 / 6) and ious[2] is None
+
+
+def test_bad_world_is_refused(trained, tmp_path, capsys):
+    cap, world, _ = trained
+    bad = tmp_path / "bad.dsgw"
+    bad.write_bytes(world.read_bytes()[:-10])
+    assert ev.main([str(bad), str(cap), "--out", str(tmp_path / "o")]) == 2
+    assert "truncated" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "report.json").exists()
+
+
+@pytest.mark.skipif(not LEGO.is_dir(), reason="shared NeRF-Blender lego data not present")
+def test_blender_world_evaluates_on_the_test_split(tmp_path):
+    world = tmp_path / "lego.dsgw"
+    assert cli.main([str(LEGO), "--out", str(world), "--preset", "quick", "--iterations", "15",
+                     "--downscale", "16", "--quiet"]) == 0
+    r = ev.evaluate(world, LEGO, tmp_path / "r")
+    assert r["views"] == 10 and r["image_size"] == [50, 50] and r["mean"]["mask_iou"] is None
+    assert r["mean"]["psnr"] > 8  # white background over white: even a poor world gets the background right

@@ -1,0 +1,25 @@
+"""Single-state reconstruction of a segmented Gaussian field (Gaussian Grouping's recipe) and the world file.
+
+Modules: :mod:`.presets` (configuration), :mod:`.data` (views to train on), :mod:`.init` (initial Gaussians),
+:mod:`.field` (``SegmentedField``, ``Classifier``), :mod:`.losses` (pure loss functions), :mod:`.strategy`
+(densification), :mod:`.checkpoint` (pickle-free checkpoints), :mod:`.trainer` (the loop), :mod:`.cli`
+(``dsg-train``).
+"""
+
+from .field import Classifier, RenderOutput, SegmentedField, rigid_transform_gaussians
+from .presets import PRESETS, LearningRates, Preset, TrainConfig, get_preset
+from .strategy import DensifyStrategy, StrategyConfig
+
+__all__ = [
+    "Classifier",
+    "DensifyStrategy",
+    "LearningRates",
+    "PRESETS",
+    "Preset",
+    "RenderOutput",
+    "SegmentedField",
+    "StrategyConfig",
+    "TrainConfig",
+    "get_preset",
+    "rigid_transform_gaussians",
+]

@@ -529,3 +529,32 @@ def test_overwrite_replaces_existing_stage(tmp_path, world):
     export_stage(target, background, objects)
     export_stage(target, background, objects[:1])
     assert [o.name for o in read_stage(target).objects] == ["mug"]
+
+
+# ------------------------------------------------------------------------------------- helpers for callers
+
+
+def test_recorder_accepts_pose7_vectors():
+    rec = EpisodeRecorder(fps=10)
+    half = math.sqrt(0.5)
+    rec.reset([[0.1, 0.2, 0.3, 1.0, 0.0, 0.0, 0.0]])
+    rec.step([[0.0, 0.0, 0.0, 2 * half, 0.0, 0.0, 2 * half]], reward=1.0)  # unnormalised: renormalised
+    ep = rec.episode()
+    np.testing.assert_allclose(ep.poses[0, 0, :3, 3], [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(ep.poses[1, 0], rot_z(90.0), atol=1e-12)
+    with pytest.raises(ValueError, match=r"\[K, 4, 4\] or \[K, 7\]"):
+        rec.step(np.zeros((1, 6)))
+
+
+def test_cameras_from_arrays(tmp_path, world):
+    background = world[0]
+    cams = [make_camera("x"), make_camera("y", eye=(0.2, 0.7, 0.4))]
+    from dsg_gym.usd import cameras_from_arrays
+
+    made = cameras_from_arrays([c.viewmat for c in cams], [c.K for c in cams], 160, 120)
+    assert [c.name for c in made] == ["cam_000", "cam_001"]
+    got = read_stage(export_stage(tmp_path / "c.usda", background, [], made))
+    assert [c.name for c in got.cameras] == ["cam_000", "cam_001"]
+    np.testing.assert_allclose(got.cameras[1].viewmat, cams[1].viewmat, atol=1e-9)
+    with pytest.raises(ValueError, match="bad shapes"):
+        cameras_from_arrays(np.eye(4), np.eye(3), 10, 10)

@@ -1,7 +1,7 @@
 """USD export of Gaussian worlds and episodes (``export_stage``) and the matching reader
 (``read_stage``); see ``dsg_gym.usd.stage`` for the stage layout and README "USD export"."""
 
-from dsg_gym.usd.cameras import UsdCamera
+from dsg_gym.usd.cameras import UsdCamera, cameras_from_arrays
 from dsg_gym.usd.episode import Episode, EpisodeRecorder
 from dsg_gym.usd.stage import StageContents, StageObject, UsdObject, export_stage, read_stage
 from dsg_gym.usd.validate import ValidationIssue, validate_stage
@@ -14,6 +14,7 @@ __all__ = [
     "UsdCamera",
     "UsdObject",
     "ValidationIssue",
+    "cameras_from_arrays",
     "export_stage",
     "read_stage",
     "validate_stage",

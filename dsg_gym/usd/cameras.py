@@ -34,7 +34,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom
 
 from dsg_gym.usd.transforms import check_rigid, from_gf_matrix, rigid_inverse, to_gf_matrix
 
-__all__ = ["SENSOR_WIDTH_MM", "UsdCamera", "check_camera", "write_camera", "read_camera",
+__all__ = ["SENSOR_WIDTH_MM", "UsdCamera", "cameras_from_arrays", "check_camera", "write_camera", "read_camera",
            "usd_lens_from_K", "K_from_usd_lens"]
 
 SENSOR_WIDTH_MM = 20.955
@@ -52,6 +52,17 @@ class UsdCamera:
     width: int
     height: int
     clipping_range: tuple[float, float] = (0.01, 100.0)
+
+
+def cameras_from_arrays(viewmats, Ks, width: int, height: int, prefix: str = "cam",  # noqa: N803
+                        clipping_range: tuple[float, float] = (0.01, 100.0)) -> list[UsdCamera]:
+    """``UsdCamera`` list named ``{prefix}_{i:03d}`` from batched ``viewmats [V, 4, 4]`` and
+    ``Ks [V, 3, 3]`` sharing one image size (e.g. a world's capture cameras)."""
+    viewmats, Ks = np.asarray(viewmats, np.float64), np.asarray(Ks, np.float64)  # noqa: N806
+    if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4) or Ks.shape != (viewmats.shape[0], 3, 3):
+        raise ValueError(f"cameras_from_arrays: bad shapes viewmats {viewmats.shape}, Ks {Ks.shape}")
+    return [UsdCamera(f"{prefix}_{i:03d}", v, k, int(width), int(height), clipping_range)
+            for i, (v, k) in enumerate(zip(viewmats, Ks))]
 
 
 def check_camera(cam: UsdCamera) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,7 @@
 reaching state ``t + 1``. ``EpisodeRecorder`` collects them step by step::
 
     rec = EpisodeRecorder(fps=env_fps)
-    rec.reset(poses0)                       # [K, 4, 4] object-to-world
+    rec.reset(poses0)                       # [K, 4, 4] object-to-world, or [K, 7] x y z qw qx qy qz
     rec.step(poses1, reward=r, action=a)    # after each env.step
     episode = rec.episode()
 """
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dsg_gym.usd.transforms import check_rigid
+from dsg_gym.usd.transforms import check_rigid, quat_to_rotmat
 
 __all__ = ["Episode", "EpisodeRecorder"]
 
@@ -74,8 +74,25 @@ class Episode:
         return int(self.poses.shape[1])
 
 
+def _as_matrices(poses) -> np.ndarray:
+    """``[K, 4, 4]`` float64 copy of ``poses`` given as ``[K, 4, 4]`` matrices or ``[K, 7]`` pose
+    vectors ``x, y, z, qw, qx, qy, qz`` (the env's observation layout; quaternions renormalised)."""
+    p = np.array(poses, dtype=np.float64, copy=True)
+    if p.ndim == 2 and p.shape[1] == 7:
+        if not np.isfinite(p).all() or (np.linalg.norm(p[:, 3:], axis=1) == 0).any():
+            raise ValueError("EpisodeRecorder: [K, 7] poses must be finite with non-zero quaternions")
+        m = np.tile(np.eye(4), (p.shape[0], 1, 1))
+        m[:, :3, :3] = quat_to_rotmat(p[:, 3:])
+        m[:, :3, 3] = p[:, :3]
+        return m
+    if p.ndim != 3 or p.shape[1:] != (4, 4):
+        raise ValueError(f"EpisodeRecorder: poses must be [K, 4, 4] or [K, 7], got shape {p.shape}")
+    return p
+
+
 class EpisodeRecorder:
-    """Collects poses/rewards/actions step by step; ``episode()`` returns an ``Episode``."""
+    """Collects poses/rewards/actions step by step; ``episode()`` returns an ``Episode``. Poses may
+    be ``[K, 4, 4]`` matrices or ``[K, 7]`` vectors ``x, y, z, qw, qx, qy, qz``."""
 
     def __init__(self, fps: float) -> None:
         self.fps = fps
@@ -89,7 +106,7 @@ class EpisodeRecorder:
 
     def reset(self, poses) -> None:
         """Start a new episode with the initial object poses ``[K, 4, 4]``."""
-        self._poses = [np.array(poses, dtype=np.float64, copy=True)]
+        self._poses = [_as_matrices(poses)]
         self._rewards, self._actions, self._has_actions = [], [], None
 
     def step(self, poses, reward: float = 0.0, action=None) -> None:
@@ -100,7 +117,7 @@ class EpisodeRecorder:
         if self._has_actions is not None and has != self._has_actions:
             raise ValueError("EpisodeRecorder.step: give an action on every step or on none")
         self._has_actions = has
-        self._poses.append(np.array(poses, dtype=np.float64, copy=True))
+        self._poses.append(_as_matrices(poses))
         self._rewards.append(float(reward))
         if has:
             self._actions.append(np.array(action, dtype=np.float64, copy=True))

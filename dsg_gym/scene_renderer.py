@@ -49,8 +49,9 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near,
     V, n = viewmats.shape[0], means.shape[0]
     out = _Projected(np.empty((V, n, 2), np.float32), np.empty((V, n, 3), np.float32),
                      np.empty((V, n), np.float32), np.empty((V, n, 2), np.int32), np.empty((V, n, 4), np.int32))
-    P.project_forward(means, quats, scales, opacities[None], viewmats, Ks, float(width), float(height),
-                      float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects)
+    kernel = P.project_forward if V * n > 20_000 else P.project_forward_serial
+    kernel(means, quats, scales, opacities[None], viewmats, Ks, float(width), float(height),
+           float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects)
     return out
 
 
@@ -248,7 +249,7 @@ class SceneRenderer:
                                st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
-        return self._outputs(st, layout)
+        return self._outputs(st, layout, tiles)
 
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:
         """The raw accumulators of the last render: colours [V,H,W,D] (no background) and T [V,H,W]."""
@@ -256,21 +257,21 @@ class SceneRenderer:
             raise RuntimeError("nothing rendered yet")
         return self._state["out"], self._state["T"]
 
-    def _outputs(self, st, layout) -> RenderOutput:
+    def _outputs(self, st, layout, tiles) -> RenderOutput:
+        """Update the output images on the recomposited tiles; return copies."""
         D, o_rgb, o_mask, o_depth = layout
-        out, T = st["out"], st["T"]
-        alpha = 1.0 - T
-        rgb = mask = depth = None
-        if o_rgb >= 0:
-            img = out[..., o_rgb:o_rgb + 3] + T[..., None] * self.background_color
-            rgb = (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-        if o_mask >= 0:
-            w = out[..., o_mask:o_mask + self.K + 1].copy()
-            w[..., 0] += T
-            mask = np.argmax(w, axis=-1).astype(np.uint8)
-        if o_depth >= 0:
-            depth = np.where(alpha > 1e-6, out[..., o_depth] / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
-        return RenderOutput(rgb=rgb, mask=mask, depth=depth, alpha=alpha)
+        shape = (self.V, self.height, self.width)
+        if "rgb" not in st:
+            st["rgb"] = np.zeros(shape + (3,), np.uint8)
+            st["mask"] = np.zeros(shape, np.uint8)
+            st["depth"] = np.zeros(shape, np.float32)
+            st["alpha"] = np.zeros(shape, np.float32)
+        I.finish_tiles(tiles, self.tiles_x, self.tiles_y, self.width, self.height, st["out"], st["T"],
+                       self.background_color, o_rgb, o_mask, self.K + 1, o_depth, st["rgb"], st["mask"],
+                       st["depth"], st["alpha"])
+        return RenderOutput(rgb=st["rgb"].copy() if o_rgb >= 0 else None,
+                            mask=st["mask"].copy() if o_mask >= 0 else None,
+                            depth=st["depth"].copy() if o_depth >= 0 else None, alpha=st["alpha"].copy())
 
 
 def _quat_matrix(q: np.ndarray) -> np.ndarray:

@@ -138,3 +138,41 @@ def sh_to_rgb(means_w, R, campos, sh, degree, out):
                       + C3[4] * x * (4.0 * zz - xx - yy) * sh[i, 13, ch]
                       + C3[5] * z * (xx - yy) * sh[i, 14, ch] + C3[6] * x * (xx - 3.0 * yy) * sh[i, 15, ch])
             out[i, ch] = max(v + 0.5, 0.0)
+
+
+@nb.njit(cache=True)
+def finish_tiles(tiles, tiles_x, tiles_y, width, height, out, T, bg_rgb, o_rgb, o_mask, n_mask, o_depth,
+                 rgb, mask, depth, alpha):
+    """Turn the accumulators of the listed tiles into outputs (in place).
+
+    rgb uint8 = round(255 clip(C + T bg)); mask = argmax of the id weights with T added to the
+    background's; depth = accumulated depth / alpha (0 where alpha <= 1e-6); alpha = 1 - T.
+    """
+    nt = tiles_x * tiles_y
+    for m in range(tiles.shape[0]):
+        ct = tiles[m]
+        c = ct // nt
+        t = ct - c * nt
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        for y in range(ty * TILE, min((ty + 1) * TILE, height)):
+            for x in range(tx * TILE, min((tx + 1) * TILE, width)):
+                tr = T[c, y, x]
+                a = np.float32(1.0) - tr
+                alpha[c, y, x] = a
+                if o_rgb >= 0:
+                    for ch in range(3):
+                        v = out[c, y, x, o_rgb + ch] + tr * bg_rgb[ch]
+                        v = min(max(v, np.float32(0.0)), np.float32(1.0))
+                        rgb[c, y, x, ch] = np.uint8(v * np.float32(255.0) + np.float32(0.5))
+                if o_mask >= 0:
+                    best = out[c, y, x, o_mask] + tr
+                    arg = 0
+                    for k in range(1, n_mask):
+                        w = out[c, y, x, o_mask + k]
+                        if w > best:
+                            best = w
+                            arg = k
+                    mask[c, y, x] = arg
+                if o_depth >= 0:
+                    depth[c, y, x] = out[c, y, x, o_depth] / a if a > 1e-6 else np.float32(0.0)

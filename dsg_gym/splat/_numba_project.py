@@ -93,6 +93,85 @@ def _cov2d(j00, j02, j11, j12, m00, m01, m02, m10, m11, m12, m20, m21, m22):
     return a00, a01, a02, a10, a11, a12, sa, sb, sc
 
 
+@nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _project_one(c, i, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                 means2d, conics, depths, radii, rects):
+    """Project Gaussian i into camera c (the body of ``project_forward``)."""
+    Co = opacities.shape[0]
+    radii[c, i, 0] = 0
+    radii[c, i, 1] = 0
+    rects[c, i, 0] = 0
+    rects[c, i, 1] = -1
+    rects[c, i, 2] = 0
+    rects[c, i, 3] = -1
+    V = viewmats[c]
+    mx = np.float64(means[i, 0])
+    my = np.float64(means[i, 1])
+    mz = np.float64(means[i, 2])
+    px = V[0, 0] * mx + V[0, 1] * my + V[0, 2] * mz + V[0, 3]
+    py = V[1, 0] * mx + V[1, 1] * my + V[1, 2] * mz + V[1, 3]
+    pz = V[2, 0] * mx + V[2, 1] * my + V[2, 2] * mz + V[2, 3]
+    depths[c, i] = pz
+    fx = np.float64(Ks[c, 0, 0])
+    fy = np.float64(Ks[c, 1, 1])
+    cx = np.float64(Ks[c, 0, 2])
+    cy = np.float64(Ks[c, 1, 2])
+    if not (pz >= near and pz <= far):
+        means2d[c, i, 0] = 0.0
+        means2d[c, i, 1] = 0.0
+        conics[c, i, 0] = 0.0
+        conics[c, i, 1] = 0.0
+        conics[c, i, 2] = 0.0
+        return
+    rz = 1.0 / pz
+    u = fx * px * rz + cx
+    v = fy * py * rz + cy
+    means2d[c, i, 0] = u
+    means2d[c, i, 1] = v
+    o = np.float64(opacities[0 if Co == 1 else c, i])
+    # 3D covariance: M = R S, Sigma = M M^T.
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, _ = _quat_to_rot(
+        np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
+        np.float64(quats[i, 3]))
+    sx = np.float64(scales[i, 0])
+    sy = np.float64(scales[i, 1])
+    sz = np.float64(scales[i, 2])
+    # Rotate into the camera first: Mc = Rw R S; then Sigma2d = J Mc Mc^T J^T + blur.
+    w00, w01, w02, w10, w11, w12, w20, w21, w22 = _cam_rotation(V, r00, r01, r02, r10, r11, r12, r20, r21, r22)
+    j00, j02, j11, j12, _, _, _, _ = _jacobian(px, py, rz, fx, fy, cx, cy, width, height)
+    _, _, _, _, _, _, sa, sb, sc = _cov2d(j00, j02, j11, j12, w00 * sx, w01 * sy, w02 * sz, w10 * sx, w11 * sy,
+                                          w12 * sz, w20 * sx, w21 * sy, w22 * sz)
+    det = sa * sc - sb * sb
+    if not (det > 0.0) or not math.isfinite(det):
+        conics[c, i, 0] = 0.0
+        conics[c, i, 1] = 0.0
+        conics[c, i, 2] = 0.0
+        return
+    idet = 1.0 / det
+    conics[c, i, 0] = sc * idet
+    conics[c, i, 1] = -sb * idet
+    conics[c, i, 2] = sa * idet
+    # Opacity-aware extent: alpha >= 1/255  <=>  d^T conic d <= 2 ln(255 o).
+    if o * 255.0 <= 1.0:
+        return
+    t = 2.0 * math.log(o * 255.0)
+    ex = math.sqrt(t * sa)
+    ey = math.sqrt(t * sc)
+    # Pixel p is visited when its centre p + 0.5 lies within [u - ex, u + ex] (+1 px margin).
+    fx0 = math.ceil(u - ex - 0.5) - 1.0
+    fx1 = math.floor(u + ex - 0.5) + 1.0
+    fy0 = math.ceil(v - ey - 0.5) - 1.0
+    fy1 = math.floor(v + ey - 0.5) + 1.0
+    if fx1 < 0.0 or fy1 < 0.0 or fx0 > width - 1.0 or fy0 > height - 1.0:
+        return
+    radii[c, i, 0] = np.int32(min(math.ceil(ex), 1e9))
+    radii[c, i, 1] = np.int32(min(math.ceil(ey), 1e9))
+    rects[c, i, 0] = np.int32(max(fx0, 0.0))
+    rects[c, i, 1] = np.int32(min(fx1, width - 1.0))
+    rects[c, i, 2] = np.int32(max(fy0, 0.0))
+    rects[c, i, 3] = np.int32(min(fy1, height - 1.0))
+
+
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
                     means2d, conics, depths, radii, rects):
@@ -102,84 +181,22 @@ def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height
     viewmats [C,4,4], Ks [C,3,3]; outputs means2d [C,N,2], conics [C,N,3], depths [C,N],
     radii [C,N,2] int32, rects [C,N,4] int32.
     """
-    C = viewmats.shape[0]
     N = means.shape[0]
-    Co = opacities.shape[0]
-    for ci in nb.prange(C * N):
+    for ci in nb.prange(viewmats.shape[0] * N):
         c = ci // N
-        i = ci - c * N
-        radii[c, i, 0] = 0
-        radii[c, i, 1] = 0
-        rects[c, i, 0] = 0
-        rects[c, i, 1] = -1
-        rects[c, i, 2] = 0
-        rects[c, i, 3] = -1
-        V = viewmats[c]
-        mx = np.float64(means[i, 0])
-        my = np.float64(means[i, 1])
-        mz = np.float64(means[i, 2])
-        px = V[0, 0] * mx + V[0, 1] * my + V[0, 2] * mz + V[0, 3]
-        py = V[1, 0] * mx + V[1, 1] * my + V[1, 2] * mz + V[1, 3]
-        pz = V[2, 0] * mx + V[2, 1] * my + V[2, 2] * mz + V[2, 3]
-        depths[c, i] = pz
-        fx = np.float64(Ks[c, 0, 0])
-        fy = np.float64(Ks[c, 1, 1])
-        cx = np.float64(Ks[c, 0, 2])
-        cy = np.float64(Ks[c, 1, 2])
-        if not (pz >= near and pz <= far):
-            means2d[c, i, 0] = 0.0
-            means2d[c, i, 1] = 0.0
-            conics[c, i, 0] = 0.0
-            conics[c, i, 1] = 0.0
-            conics[c, i, 2] = 0.0
-            continue
-        rz = 1.0 / pz
-        u = fx * px * rz + cx
-        v = fy * py * rz + cy
-        means2d[c, i, 0] = u
-        means2d[c, i, 1] = v
-        o = np.float64(opacities[0 if Co == 1 else c, i])
-        # 3D covariance: M = R S, Sigma = M M^T.
-        r00, r01, r02, r10, r11, r12, r20, r21, r22, _ = _quat_to_rot(
-            np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
-            np.float64(quats[i, 3]))
-        sx = np.float64(scales[i, 0])
-        sy = np.float64(scales[i, 1])
-        sz = np.float64(scales[i, 2])
-        # Rotate into the camera first: Mc = Rw R S; then Sigma2d = J Mc Mc^T J^T + blur.
-        w00, w01, w02, w10, w11, w12, w20, w21, w22 = _cam_rotation(V, r00, r01, r02, r10, r11, r12, r20, r21, r22)
-        j00, j02, j11, j12, _, _, _, _ = _jacobian(px, py, rz, fx, fy, cx, cy, width, height)
-        _, _, _, _, _, _, sa, sb, sc = _cov2d(j00, j02, j11, j12, w00 * sx, w01 * sy, w02 * sz, w10 * sx, w11 * sy,
-                                              w12 * sz, w20 * sx, w21 * sy, w22 * sz)
-        det = sa * sc - sb * sb
-        if not (det > 0.0) or not math.isfinite(det):
-            conics[c, i, 0] = 0.0
-            conics[c, i, 1] = 0.0
-            conics[c, i, 2] = 0.0
-            continue
-        idet = 1.0 / det
-        conics[c, i, 0] = sc * idet
-        conics[c, i, 1] = -sb * idet
-        conics[c, i, 2] = sa * idet
-        # Opacity-aware extent: alpha >= 1/255  <=>  d^T conic d <= 2 ln(255 o).
-        if o * 255.0 <= 1.0:
-            continue
-        t = 2.0 * math.log(o * 255.0)
-        ex = math.sqrt(t * sa)
-        ey = math.sqrt(t * sc)
-        # Pixel p is visited when its centre p + 0.5 lies within [u - ex, u + ex] (+1 px margin).
-        fx0 = math.ceil(u - ex - 0.5) - 1.0
-        fx1 = math.floor(u + ex - 0.5) + 1.0
-        fy0 = math.ceil(v - ey - 0.5) - 1.0
-        fy1 = math.floor(v + ey - 0.5) + 1.0
-        if fx1 < 0.0 or fy1 < 0.0 or fx0 > width - 1.0 or fy0 > height - 1.0:
-            continue
-        radii[c, i, 0] = np.int32(min(math.ceil(ex), 1e9))
-        radii[c, i, 1] = np.int32(min(math.ceil(ey), 1e9))
-        rects[c, i, 0] = np.int32(max(fx0, 0.0))
-        rects[c, i, 1] = np.int32(min(fx1, width - 1.0))
-        rects[c, i, 2] = np.int32(max(fy0, 0.0))
-        rects[c, i, 3] = np.int32(min(fy1, height - 1.0))
+        _project_one(c, ci - c * N, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                     means2d, conics, depths, radii, rects)
+
+
+@nb.njit(cache=True, fastmath=_FASTMATH)
+def project_forward_serial(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                           means2d, conics, depths, radii, rects):
+    """``project_forward`` on one thread: cheaper for a few thousand Gaussians (no thread start)."""
+    N = means.shape[0]
+    for ci in range(viewmats.shape[0] * N):
+        c = ci // N
+        _project_one(c, ci - c * N, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+                     means2d, conics, depths, radii, rects)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)

@@ -55,8 +55,10 @@ def _pose(x: float, y: float, yaw: float) -> np.ndarray:
 def make_world(seed: int = 0):
     rng = np.random.default_rng(seed)
     background = _gaussians(rng, BACKGROUND, 0.5)
-    objects = [UsdObject(f"object_{i + 1}", _gaussians(rng, PER_OBJECT, 0.03), _pose(0.1 * i - 0.2, 0.05, 0.4 * i))
-               for i in range(OBJECTS)]
+    objects = [
+        UsdObject(f"object_{i + 1}", _gaussians(rng, PER_OBJECT, 0.03), _pose(0.1 * i - 0.2, 0.05, 0.4 * i))
+        for i in range(OBJECTS)
+    ]
     cameras = []
     for i in range(4):
         a = 2 * np.pi * i / 4
@@ -67,9 +69,12 @@ def make_world(seed: int = 0):
         r = np.stack([x, np.cross(z, x), z])
         view = np.eye(4)
         view[:3, :3], view[:3, 3] = r, -r @ eye
-        cameras.append(UsdCamera(f"cam_{i}", view, np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]), 320, 240))
+        K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])  # noqa: N806
+        cameras.append(UsdCamera(f"cam_{i}", view, K, 320, 240))
     t = np.linspace(0, 1, EPISODE_STEPS)
-    poses = np.stack([[_pose(0.1 * i - 0.2 + 0.1 * tt, 0.05, 0.4 * i + 3 * tt) for i in range(OBJECTS)] for tt in t])
+    poses = np.stack(
+        [[_pose(0.1 * i - 0.2 + 0.1 * tt, 0.05, 0.4 * i + 3 * tt) for i in range(OBJECTS)] for tt in t]
+    )
     episode = Episode(30.0, poses, rewards=np.zeros(EPISODE_STEPS - 1))
     return background, objects, cameras, episode
 

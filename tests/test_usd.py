@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdVol, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdVol
 
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.usd import (
@@ -264,7 +264,8 @@ def test_validator_catches_a_broken_stage():
 
 def test_stage_metadata(tmp_path):
     rng = np.random.default_rng(2)
-    path = export_stage(tmp_path / "m.usdc", random_set(rng, 5), [UsdObject("a", random_set(rng, 5), np.eye(4))],
+    obj = UsdObject("a", random_set(rng, 5), np.eye(4))
+    path = export_stage(tmp_path / "m.usdc", random_set(rng, 5), [obj],
                         meters_per_unit=0.01, up_axis="Y", kilograms_per_unit=0.001)
     got = read_stage(path)
     md = got.metadata

@@ -34,8 +34,8 @@ from pxr import Gf, Sdf, Usd, UsdGeom
 
 from dsg_gym.usd.transforms import check_rigid, from_gf_matrix, rigid_inverse, to_gf_matrix
 
-__all__ = ["SENSOR_WIDTH_MM", "UsdCamera", "cameras_from_arrays", "check_camera", "write_camera", "read_camera",
-           "usd_lens_from_K", "K_from_usd_lens"]
+__all__ = ["SENSOR_WIDTH_MM", "UsdCamera", "cameras_from_arrays", "check_camera", "write_camera",
+           "read_camera", "usd_lens_from_K", "K_from_usd_lens"]
 
 SENSOR_WIDTH_MM = 20.955
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -111,7 +111,9 @@ def K_from_usd_lens(lens: dict[str, float], width: int, height: int) -> np.ndarr
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def write_camera(stage: Usd.Stage, path: str | Sdf.Path, cam: UsdCamera, name: str | None = None) -> UsdGeom.Camera:
+def write_camera(
+    stage: Usd.Stage, path: str | Sdf.Path, cam: UsdCamera, name: str | None = None
+) -> UsdGeom.Camera:
     """Define a ``UsdGeom.Camera`` at ``path`` for ``cam`` (validated with ``check_camera``)."""
     viewmat, k = check_camera(cam)
     usd_cam = UsdGeom.Camera.Define(stage, Sdf.Path(str(path)))

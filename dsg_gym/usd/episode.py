@@ -58,7 +58,9 @@ class Episode:
             if name == "rewards" and arr.shape != (t - 1,):
                 raise ValueError(f"Episode.rewards: expected shape ({t - 1},) for {t} poses, got {arr.shape}")
             if name == "actions" and (arr.ndim < 1 or arr.shape[0] != t - 1):
-                raise ValueError(f"Episode.actions: expected shape ({t - 1}, ...) for {t} poses, got {arr.shape}")
+                raise ValueError(
+                    f"Episode.actions: expected shape ({t - 1}, ...) for {t} poses, got {arr.shape}"
+                )
             if not np.isfinite(arr).all():
                 raise ValueError(f"Episode.{name}: contains non-finite values")
             put(name, arr)

@@ -60,7 +60,9 @@ def splat_extent(g: GaussianSet, sigmas: float = EXTENT_SIGMAS) -> np.ndarray:
     return np.stack([lo32, hi32]).astype(np.float32)
 
 
-def write_splats(stage: Usd.Stage, path: str | Sdf.Path, g: GaussianSet) -> UsdVol.ParticleField3DGaussianSplat:
+def write_splats(
+    stage: Usd.Stage, path: str | Sdf.Path, g: GaussianSet
+) -> UsdVol.ParticleField3DGaussianSplat:
     """Define a ``ParticleField3DGaussianSplat`` at ``path`` holding ``g`` (local frame)."""
     prim = UsdVol.ParticleField3DGaussianSplat.Define(stage, Sdf.Path(str(path)))
     n = g.num
@@ -116,7 +118,9 @@ def read_splats(prim: Usd.Prim) -> GaussianSet:
         f = int(feat_pv.GetElementSize())
         flat = np.array(feat_pv.Get(), dtype=np.float32)
         if flat.size != n * f:
-            raise ValueError(f"{what}: primvars:{FEATURES_PRIMVAR} has {flat.size} values, expected {n} x {f}")
+            raise ValueError(
+                f"{what}: primvars:{FEATURES_PRIMVAR} has {flat.size} values, expected {n} x {f}"
+            )
         features = flat.reshape(n, f)
     else:
         features = np.zeros((n, 0), np.float32)

@@ -129,7 +129,9 @@ def _prim_names(kind: str, names: Sequence[str]) -> list[str]:
         if not Sdf.Path.IsValidIdentifier(safe):
             safe = "_" + safe
         if safe in out:
-            raise ValueError(f"export_stage: {kind} names {name!r} and another give the same prim name {safe!r}")
+            raise ValueError(
+                f"export_stage: {kind} names {name!r} and another give the same prim name {safe!r}"
+            )
         out.append(safe)
     return out
 
@@ -231,7 +233,8 @@ def _write_episode(stage: Usd.Stage, world: Usd.Prim, ops, episode: Episode) -> 
         attr = world.CreateAttribute("dsg:episode:action", Sdf.ValueTypeNames.DoubleArray, custom=True)
         attr.SetCustomDataByKey("dsg:shape", Vt.IntArray([int(s) for s in episode.actions.shape[1:]]))
         for t, a in enumerate(episode.actions):
-            attr.Set(Vt.DoubleArray.FromNumpy(np.ascontiguousarray(a.reshape(-1))), Usd.TimeCode(float(t + 1)))
+            flat = Vt.DoubleArray.FromNumpy(np.ascontiguousarray(a.reshape(-1)))
+            attr.Set(flat, Usd.TimeCode(float(t + 1)))
 
 
 def export_stage(
@@ -278,13 +281,15 @@ def export_stage(
             raise ValueError(f"export_stage: episode must be an Episode, got {type(episode).__name__}")
         if episode.num_objects != len(objects):
             raise ValueError(
-                f"export_stage: episode.poses has shape {episode.poses.shape}, expected [T, {len(objects)}, 4, 4] "
-                f"(one pose per object per step)"
+                f"export_stage: episode.poses has shape {episode.poses.shape}, expected "
+                f"[T, {len(objects)}, 4, 4] (one pose per object per step)"
             )
     if table_bounds is not None:
         table_bounds = np.array(table_bounds, dtype=np.float64)
         if table_bounds.shape != (2, 3) or not np.isfinite(table_bounds).all():
-            raise ValueError(f"export_stage: table_bounds must be a finite [2, 3] array, got {table_bounds.shape}")
+            raise ValueError(
+                f"export_stage: table_bounds must be a finite [2, 3] array, got {table_bounds.shape}"
+            )
 
     stage = Usd.Stage.CreateInMemory(f"dsg{path.suffix}")
     _build(stage, background, objects, poses, cameras, mpu, up_axis, kpu, episode, table_bounds)

@@ -183,6 +183,22 @@ def _row_span(ca, cb, cc, u, dy, logo, x0, x1, px0):
     return int(lo), int(hi)
 
 
+@nb.njit(cache=True, inline="always")
+def _bits(x0, x1):
+    """Bit mask of tile columns x0..x1."""
+    return ((np.int64(1) << (x1 + 1)) - 1) ^ ((np.int64(1) << x0) - 1)
+
+
+@nb.njit(cache=True, inline="always")
+def _rows_done(row_done, y0, y1, x0, x1):
+    """True when every pixel of columns x0..x1 in rows y0..y1 has finished."""
+    bits = _bits(x0, x1)
+    for ly in range(y0, y1 + 1):
+        if row_done[ly] & bits != bits:
+            return False
+    return True
+
+
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
 def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, col, px0, py0, pw, ph,
                   xc, yc, acc, trans, done, row_done):
@@ -209,12 +225,17 @@ def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1
     xr0 = max(rx0, px0)
     xr1 = min(rx1, px0 + pw - 1)
     finished = 0
+    if xr1 < xr0 or _rows_done(row_done, y0, y1, xr0 - px0, xr1 - px0):
+        return 0  # hidden behind finished pixels: nothing to do
+    rect_bits = _bits(xr0 - px0, xr1 - px0)
     for ly in range(y0, y1 + 1):
+        if row_done[ly] & rect_bits == rect_bits:
+            continue
         dy = yc[ly] - v
         x0, x1 = _row_span(conic_a, conic_b, conic_c, u, np.float64(dy), logo, xr0, xr1, px0)
         if x1 < x0:
             continue
-        span_bits = ((np.int64(1) << (x1 + 1)) - 1) ^ ((np.int64(1) << x0) - 1)
+        span_bits = _bits(x0, x1)
         if row_done[ly] & span_bits == span_bits:
             continue  # every pixel of the span has finished
         bdy = conic_b * dy
@@ -398,13 +419,18 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
             gb = 0.0
             gc = 0.0
             go = 0.0
+            if xr1 < xr0 or _rows_done(row_done, y0, y1, xr0 - px0, xr1 - px0):
+                continue  # the forward pass skipped it too; its slot stays zero
+            rect_bits = _bits(xr0 - px0, xr1 - px0)
             for ly in range(y0, y1 + 1):
+                if row_done[ly] & rect_bits == rect_bits:
+                    continue
                 dy = yc[ly] - v
                 dyd = np.float64(dy)
                 x0, x1 = _row_span(conics[c, g, 0], cb, conics[c, g, 2], u, dyd, logo, xr0, xr1, px0)
                 if x1 < x0:
                     continue
-                span_bits = ((np.int64(1) << (x1 + 1)) - 1) ^ ((np.int64(1) << x0) - 1)
+                span_bits = _bits(x0, x1)
                 if row_done[ly] & span_bits == span_bits:
                     continue  # every pixel of the span has finished
                 bdy = cb * dy

@@ -4,7 +4,7 @@ Python::
 
     from dsg_gym.export import export_world_usd, export_world_ply
     export_world_usd("assets/worlds/default_geom.dsgworld", "world.usdc")            # objects at state1
-    export_world_usd(world_model, "w.usda", poses="state2")                            # or [K,4,4] / [K,7] / file
+    export_world_usd(world_model, "w.usda", poses="state2")       # or [K,4,4] / [K,7] / a poses file
     export_world_usd(world_model, "ep", episode="ep.npz")                              # -> ep.usdc, animated
     export_world_ply(world_model, "ply_dir")                    # background.ply + <name>.ply (object frames)
     export_world_ply(world_model, "ply_dir", poses="state1")    # objects placed in the world frame
@@ -98,7 +98,8 @@ def resolve_poses(wm: WorldModel, poses) -> np.ndarray:
     k = wm.num_objects
     if poses is None:
         ref = wm.metadata.get("reference_state")
-        name = ref if ref in wm.states else ("state1" if "state1" in wm.states else next(iter(wm.states), None))
+        first = "state1" if "state1" in wm.states else next(iter(wm.states), None)
+        name = ref if ref in wm.states else first
         if name is None:
             raise ValueError("the world has no captured states; give poses explicitly")
         return wm.state_poses(name)
@@ -135,14 +136,15 @@ def export_world_usd(world, out, *, poses=None, episode=None, meters_per_unit: f
     ``out``: ``.usdc`` (binary, appended when ``out`` has no suffix) or ``.usda``. ``poses``: the objects'
     (untimed) poses: a state name, ``[K,4,4]`` / ``[K,7]`` array or a poses file; default the reference state,
     or the episode's first step when an ``episode`` (an :class:`~dsg_gym.usd.Episode` or an ``.npz`` episode
-    file) is given, which adds time-sampled poses (``timeCodesPerSecond`` = the episode's fps, kinematic bodies).
+    file) is given, which adds time-sampled poses (``timeCodesPerSecond`` = the episode's fps, kinematic
+    bodies).
     Includes the capture cameras and the table as a static collider. Returns the stage path."""
     from .usd import UsdObject, cameras_from_arrays, export_stage
 
     wm = load_world_model(world)
     out = Path(out)
     if out.is_dir():
-        raise ValueError(f"{out}: is a folder; give a .usdc/.usda stage path (or export PLY files into a folder)")
+        raise ValueError(f"{out}: is a folder; give a .usdc/.usda stage path (or export PLY files into it)")
     if out.suffix == "":
         out = out.with_name(out.name + ".usdc")
     if out.suffix not in (".usdc", ".usda"):
@@ -174,8 +176,8 @@ def _file_stem(name: str, used: set[str], oid: int) -> str:
 def export_world_ply(world, out_dir, *, poses=None) -> list[Path]:
     """Write the world as standard 3DGS PLY files (Inria layout, ``dsg_gym.io.write_ply``) into ``out_dir``:
     ``background.ply`` and one ``<name>.ply`` per object (names made file-safe; a clash gets ``_<id>``), each
-    object in its own frame, or in the world frame placed at ``poses`` (a state name, array or poses file) when
-    given. Object files carry a ``label`` property = the object id. Returns the paths, background first.
+    object in its own frame, or in the world frame placed at ``poses`` (a state name, array or poses file)
+    when given. Object files carry a ``label`` property = the object id. Returns the paths, background first.
 
     Every array reads back bit for bit except ``scales``: the Inria layout stores float32 log-scales, which
     cannot represent every float32 scale, so a scale may come back a few float32 ulps off (relative error
@@ -207,10 +209,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("world", help="world file (.dsgworld)")
     ap.add_argument("--out", required=True,
-                    help="stage path (.usdc/.usda; .usdc appended when there is no suffix), or with --ply a folder")
+                    help="stage path (.usdc/.usda; .usdc appended when there is no suffix), "
+                    "or with --ply a folder")
     ap.add_argument("--poses", default=None,
                     help="object poses: a state name of the world (state1, state2, ...) or a .npy/.npz/.json "
-                    "file with [K,4,4] or [K,7] poses (default: the reference state, or the episode's first step)")
+                    "file with [K,4,4] or [K,7] poses (default: the reference state, or the episode's "
+                    "first step)")
     ap.add_argument("--episode", default=None,
                     help=".npz episode file (RecordEpisode.save): writes an animated stage")
     ap.add_argument("--ply", action="store_true",

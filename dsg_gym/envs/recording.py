@@ -102,7 +102,8 @@ def load_episode(path) -> Episode:
             raise EpisodeFileError(f"{p}: not a readable .npz episode file ({e})") from None
     fps = data["fps"]
     if fps.shape != () or fps.dtype.kind not in "fiu":
-        raise EpisodeFileError(f"{p}: 'fps' must be a numeric scalar, got shape {fps.shape} dtype {fps.dtype}")
+        raise EpisodeFileError(f"{p}: 'fps' must be a numeric scalar, got shape {fps.shape}, "
+                               f"dtype {fps.dtype}")
     actions = data.get("actions")
     if actions is not None and actions.ndim != 2:
         raise EpisodeFileError(f"{p}: 'actions' must be [T-1, A], got shape {actions.shape}")
@@ -120,7 +121,8 @@ def env_poses(env: gym.Env) -> np.ndarray:
     poses = getattr(base, "_poses", None)
     if poses is None:
         if not hasattr(base, "_poses"):
-            raise TypeError(f"RecordEpisode: {type(base).__name__} does not expose object poses (not a DSGWorldEnv?)")
+            raise TypeError(f"RecordEpisode: {type(base).__name__} does not expose object poses "
+                            "(not a DSGWorldEnv?)")
         raise gym.error.ResetNeeded("RecordEpisode: call reset() first")
     return np.array(poses, dtype=np.float64, copy=True)
 

@@ -408,6 +408,20 @@ class DSGWorldEnv(gym.Env):
         p[idx, 3:] = quat_normalize(quat_multiply(dq, p[idx, 3:]))
         return p, moved
 
+    @property
+    def poses(self) -> np.ndarray:
+        """Current object poses ``[K, 7]`` (``x y z qw qx qy qz``, float64), a copy; after ``reset``."""
+        if self._poses is None:
+            raise gym.error.ResetNeeded("call reset() before reading poses")
+        return self._poses.copy()
+
+    @property
+    def goal(self) -> np.ndarray:
+        """Goal poses ``[K, 7]`` of the current episode, a copy; after ``reset``."""
+        if self._goal is None:
+            raise gym.error.ResetNeeded("call reset() before reading the goal")
+        return self._goal.copy()
+
     def step(self, action):
         if self._poses is None:
             raise gym.error.ResetNeeded("call reset() before step()")

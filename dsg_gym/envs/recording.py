@@ -114,17 +114,11 @@ def load_episode(path) -> Episode:
 
 
 def env_poses(env: gym.Env) -> np.ndarray:
-    """The current object poses ``[K, 7]`` (``x y z qw qx qy qz``) of a (wrapped) ``DSGWorldEnv``, read-only.
-
-    ``DSGWorldEnv`` has no public pose accessor yet, so this reads its ``_poses`` attribute (a copy)."""
+    """The current object poses ``[K, 7]`` (``x y z qw qx qy qz``) of a (wrapped) ``DSGWorldEnv``, a copy."""
     base = env.unwrapped
-    poses = getattr(base, "_poses", None)
-    if poses is None:
-        if not hasattr(base, "_poses"):
-            raise TypeError(f"RecordEpisode: {type(base).__name__} does not expose object poses "
-                            "(not a DSGWorldEnv?)")
-        raise gym.error.ResetNeeded("RecordEpisode: call reset() first")
-    return np.array(poses, dtype=np.float64, copy=True)
+    if not hasattr(type(base), "poses"):
+        raise TypeError(f"RecordEpisode: {type(base).__name__} does not expose object poses (not a DSGWorldEnv?)")
+    return np.array(base.poses, dtype=np.float64, copy=True)
 
 
 class RecordEpisode(gym.Wrapper):

@@ -1,0 +1,328 @@
+"""``collect()``: roll a policy out for N episodes and write one Minari dataset, resumably."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .policies import PolicyError, policy_factory, policy_name
+from .rollout import CollectError, EpisodeRecord, make_env, make_vector_env, rollout
+from .writer import IMAGE_ENCODINGS, ShardStore, combine_shards, env_spec_for, remove_partial, write_json_atomic
+
+__all__ = ["CollectResult", "collect", "collect_episodes", "default_dataset_id", "WORK_DIR"]
+
+#: hidden folder under the output root that holds unfinished runs
+WORK_DIR = ".dsg-collect"
+RUN_FORMAT = "dsg-collect-run"
+RUN_VERSION = 1
+#: settings a resumed run must share with the run it continues
+_FIXED = ("env_id", "env_kwargs", "policy", "seed", "max_episode_steps", "image_encoding", "data_format",
+          "dataset_id")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class CollectResult:
+    """What :func:`collect` did. ``path``: the dataset folder (``path / "data"`` is Minari's data folder);
+    ``new_episodes`` / ``new_transitions`` / ``seconds``: this call only; ``success_rate``: all episodes."""
+
+    path: Path
+    dataset_id: str
+    episodes: int
+    transitions: int
+    success_rate: float
+    new_episodes: int
+    new_transitions: int
+    seconds: float
+
+    @property
+    def transitions_per_second(self) -> float:
+        return self.new_transitions / self.seconds if self.seconds > 0 else float("nan")
+
+
+def _slug(s: str) -> str:
+    return re.sub(r"[^-_\w]+", "_", s).strip("_") or "x"
+
+
+def default_dataset_id(env_id: str, policy: str) -> str:
+    """``<env name>/<policy>-v0``, e.g. ``dsgworld/expert-v0`` (lower case, Minari's id syntax)."""
+    env = env_id.split(":")[-1].split("/")[-1]
+    env = re.sub(r"-v\d+$", "", env).lower()
+    pol = policy.split(":")[-1].split(".")[-1] if ":" in policy else policy
+    return f"{_slug(env)}/{_slug(pol).lower()}-v0"
+
+
+def _positive(name: str, v) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+        raise CollectError(f"{name} must be a positive integer, got {v!r}")
+    return int(v)
+
+
+def collect_episodes(
+    settings: Mapping[str, Any],
+    indices: Sequence[int],
+    shard_root: Path,
+    *,
+    num_envs: int = 1,
+    shard_episodes: int = 16,
+    flush_seconds: float = 30.0,
+    on_episode: Callable[[EpisodeRecord], None] | None = None,
+    on_steps: Callable[[int], None] | None = None,
+) -> dict[str, int]:
+    """Run the episodes ``indices`` of a run (``settings``: see :func:`collect`'s ``run.json``) in a vector
+    env of ``num_envs`` and write them as shards under ``shard_root``: a shard every ``shard_episodes``
+    finished episodes or ``flush_seconds``, and whatever is finished when the run stops for any reason
+    (error, ``KeyboardInterrupt``). Used by the local backend and by each Ray worker."""
+    s = settings
+    store = ShardStore(shard_root)
+    template = make_env(s["env_id"], s["env_kwargs"], s["max_episode_steps"])
+    pending: list[EpisodeRecord] = []
+    last = [time.monotonic()]
+    stats = {"episodes": 0, "transitions": 0}
+
+    def flush() -> None:
+        if pending:
+            store.write(pending, observation_space=template.observation_space, action_space=template.action_space,
+                        dataset_id=s["dataset_id"], data_format=s["data_format"])  # fmt: skip
+            pending.clear()
+        last[0] = time.monotonic()
+
+    def episode(rec: EpisodeRecord) -> None:
+        pending.append(rec)
+        stats["episodes"] += 1
+        stats["transitions"] += len(rec)
+        if on_episode is not None:
+            on_episode(rec)
+        if len(pending) >= shard_episodes or time.monotonic() - last[0] >= flush_seconds:
+            flush()
+
+    envs = None
+    ok = False
+    try:
+        try:
+            make_policy = policy_factory(s["policy"], template)
+        except PolicyError as e:
+            raise CollectError(str(e)) from e
+        envs = make_vector_env(s["env_id"], s["env_kwargs"], num_envs, s["max_episode_steps"])
+        rollout(envs, indices, s["seed"], make_policy, episode, on_steps=on_steps,
+                policy_label=f"policy {policy_name(s['policy'])!r}")  # fmt: skip
+        ok = True
+    finally:
+        try:
+            flush()  # keep every finished episode, whatever stopped the run
+        finally:
+            if envs is not None:
+                envs.close(**({} if ok or num_envs == 1 else {"terminate": True}))
+            template.close()
+    return stats
+
+
+class _Progress:
+    def __init__(self, enabled: bool, total: int, done: int, successes: int):
+        self.bar = None
+        self.total_done, self.succ = done, successes
+        self.transitions, self.t0, self.shown = 0, time.monotonic(), 0.0
+        if enabled:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, initial=done, unit="ep", desc="collect", dynamic_ncols=True)
+
+    def episode(self, rec: EpisodeRecord) -> None:
+        self.set_done(self.total_done + 1, self.succ + int(rec.success))
+
+    def set_done(self, done: int, successes: int) -> None:
+        if self.bar is not None and done > self.total_done:
+            self.bar.update(done - self.total_done)
+        self.total_done, self.succ = done, successes
+        self._postfix(force=True)
+
+    def steps(self, n: int) -> None:
+        if self.transitions == 0:
+            self.t0 = time.monotonic()  # rates exclude env start-up
+        self.transitions += n
+        self._postfix()
+
+    def _postfix(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if self.bar is None or (not force and now - self.shown < 0.5):
+            return
+        self.shown = now
+        rate = self.transitions / max(now - self.t0, 1e-9)
+        sr = self.succ / self.total_done if self.total_done else float("nan")
+        self.bar.set_postfix_str(f"{rate:.0f} transitions/s, success {sr:.0%}", refresh=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def collect(
+    out,
+    *,
+    env_id: str = "DSGWorld-v0",
+    env_kwargs: Mapping[str, Any] | None = None,
+    policy: str | Callable = "random",
+    episodes: int = 10,
+    num_envs: int = 1,
+    seed: int | None = None,
+    dataset_id: str | None = None,
+    max_episode_steps: int | None = None,
+    image_encoding: str = "raw",
+    resume: bool = False,
+    overwrite: bool = False,
+    shard_episodes: int = 16,
+    flush_seconds: float = 30.0,
+    backend: str = "local",
+    ray_workers: int | None = None,
+    ray_address: str | None = None,
+    keep_shards: bool = False,
+    progress: bool = False,
+    data_format: str = "hdf5",
+) -> CollectResult:
+    """Roll ``policy`` out for ``episodes`` episodes and write the Minari dataset ``out/<dataset_id>``.
+
+    ``out`` is a Minari datasets root: ``MINARI_DATASETS_PATH=out`` then ``minari.load_dataset(dataset_id)``
+    (default id ``<env>/<policy>-v0``, e.g. ``dsgworld/expert-v0``). ``policy``: ``"random"``, ``"expert"``,
+    ``"module:callable"`` or a callable ``obs -> action``. ``num_envs`` > 1 runs an ``AsyncVectorEnv``.
+    ``seed``: base seed (episode ``e`` resets with :func:`~dsg_gym.collect.rollout.episode_seed`; ``None``:
+    a random one, recorded). ``image_encoding``: ``"raw"`` (lossless, default) or ``"jpeg"`` (Minari's lossy
+    JPEG for uint8 RGB). Finished episodes are kept in shards while running; ``resume=True`` continues an
+    interrupted run (same settings; ``episodes`` may grow); ``overwrite=True`` discards an unfinished run and
+    replaces an existing dataset. ``backend="ray"`` spreads the episodes over ``ray_workers`` Ray tasks
+    (see :mod:`dsg_gym.collect.ray_backend`). Raises :class:`CollectError` (finished episodes are kept);
+    ``KeyboardInterrupt`` also keeps them.
+    """
+    t0 = time.monotonic()
+    episodes = _positive("episodes", episodes)
+    num_envs = _positive("num_envs", num_envs)
+    shard_episodes = _positive("shard_episodes", shard_episodes)
+    if max_episode_steps is not None:
+        max_episode_steps = _positive("max_episode_steps", max_episode_steps)
+    if image_encoding not in IMAGE_ENCODINGS:
+        raise CollectError(f"image_encoding must be one of {IMAGE_ENCODINGS}, got {image_encoding!r}")
+    if backend not in ("local", "ray"):
+        raise CollectError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+        raise CollectError(f"seed must be an integer >= 0, got {seed!r}")
+    env_kwargs = dict(env_kwargs or {})
+    try:
+        env_kwargs = json.loads(json.dumps(env_kwargs))  # JSON-safe (it is recorded and compared on resume)
+    except (TypeError, ValueError) as e:
+        raise CollectError(f"env_kwargs must be JSON-serialisable: {e}") from None
+    pname = policy_name(policy)
+    dataset_id = dataset_id or default_dataset_id(env_id, pname)
+    from minari.dataset.minari_dataset import parse_dataset_id
+
+    try:
+        parse_dataset_id(dataset_id)
+    except ValueError as e:
+        raise CollectError(str(e)) from None
+
+    out = Path(out)
+    target = out / dataset_id
+    work = out / WORK_DIR / dataset_id.replace("/", "__")
+    settings: dict[str, Any] = {
+        "format": RUN_FORMAT, "format_version": RUN_VERSION, "env_id": env_id, "env_kwargs": env_kwargs,
+        "policy": pname, "seed": None if seed is None else int(seed), "episodes": episodes,
+        "max_episode_steps": max_episode_steps, "image_encoding": image_encoding, "data_format": data_format,
+        "dataset_id": dataset_id,
+    }  # fmt: skip
+    if overwrite:
+        shutil.rmtree(work, ignore_errors=True)
+    elif target.exists():
+        if resume and (target / "data" / "metadata.json").exists():
+            meta = json.loads((target / "data" / "metadata.json").read_text())
+            info = meta.get("dsg_collect", {})
+            return CollectResult(target, dataset_id, int(meta.get("total_episodes", 0)),
+                                 int(meta.get("total_steps", 0)), float(info.get("success_rate", math.nan)),
+                                 0, 0, time.monotonic() - t0)  # fmt: skip
+        raise CollectError(f"{target} already exists; pass overwrite=True (--overwrite) to replace it")
+
+    run_file = work / "run.json"
+    if run_file.exists():
+        if not resume:
+            raise CollectError(
+                f"an unfinished run is in {work}; pass resume=True (--resume) to continue it or overwrite=True "
+                "(--overwrite) to start again"
+            )
+        try:
+            old = json.loads(run_file.read_text())
+        except (OSError, ValueError) as e:
+            raise CollectError(f"unreadable {run_file}: {e}") from e
+        if seed is None:
+            settings["seed"] = old.get("seed")
+        diff = [k for k in _FIXED if old.get(k) != settings[k]]
+        if diff:
+            detail = ", ".join(f"{k}: {old.get(k)!r} -> {settings[k]!r}" for k in diff)
+            raise CollectError(f"cannot resume {work}: settings differ ({detail})")
+    else:
+        if settings["seed"] is None:
+            settings["seed"] = int(np.random.SeedSequence().entropy % (2**63))
+        work.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(run_file, settings)
+    if not isinstance(policy, str):
+        settings = {**settings, "policy": policy}  # the object itself runs; its name is what is recorded
+
+    store = ShardStore(work / "shards")
+    store.clean()
+    remove_partial(target.parent, target.name)
+    done = store.done()
+    todo = [e for e in range(episodes) if e not in done]
+    succ0 = sum(int(s.successes[j]) for s, j in done.values() if s.indices[j] < episodes)
+    bar = _Progress(progress, episodes, episodes - len(todo), succ0)
+    stats = {"episodes": 0, "transitions": 0}
+    try:
+        if todo and backend == "local":
+            stats = collect_episodes(settings, todo, store.root, num_envs=num_envs, shard_episodes=shard_episodes,
+                                     flush_seconds=flush_seconds, on_episode=bar.episode, on_steps=bar.steps)  # fmt: skip
+        elif todo:
+            from .ray_backend import collect_ray
+
+            stats = collect_ray(settings, todo, store.root, workers=ray_workers, address=ray_address,
+                                num_envs=num_envs, shard_episodes=shard_episodes, flush_seconds=flush_seconds,
+                                progress=bar, total=episodes)  # fmt: skip
+    finally:
+        bar.close()
+
+    done = store.done()
+    order = list(range(episodes))
+    steps = sum(int(done[e][0].steps[done[e][1]]) for e in order)
+    succ = sum(int(done[e][0].successes[done[e][1]]) for e in order)
+    meta = {
+        "algorithm_name": pname,
+        "description": f"{pname} policy rolled out in {env_id} by dsg-collect",
+        "dsg_collect": {**{k: v for k, v in settings.items() if k != "policy"}, "policy": pname,
+                        "success_rate": succ / episodes, "episode_seeds": [int(done[e][0].seeds[done[e][1]])
+                                                                            for e in order]},
+    }  # fmt: skip
+    spec = env_spec_for(env_id, env_kwargs, max_episode_steps)
+    aside = None
+    if target.exists():  # overwrite: keep the old dataset until the new one is in place
+        aside = target.parent / f".{target.name}.old-{time.time_ns()}"
+        target.rename(aside)
+    try:
+        combine_shards(store, order, target, dataset_id=dataset_id, env_spec=spec,
+                       jpeg=image_encoding == "jpeg", data_format=data_format, metadata=meta)  # fmt: skip
+    except BaseException:
+        if aside is not None and not target.exists():
+            aside.rename(target)
+        raise
+    if aside is not None:
+        shutil.rmtree(aside, ignore_errors=True)
+    if not keep_shards:
+        shutil.rmtree(work, ignore_errors=True)
+        for d in (work.parent,):
+            try:
+                d.rmdir()  # only if empty
+            except OSError:
+                pass
+    return CollectResult(target, dataset_id, episodes, steps, succ / episodes, stats["episodes"],
+                         stats["transitions"], time.monotonic() - t0)  # fmt: skip

@@ -14,11 +14,11 @@ import pytest
 minari = pytest.importorskip("minari")
 pytest.importorskip("h5py")
 
-import dsg_gym  # noqa: E402,F401
-from dsg_gym.collect import CollectError, collect, episode_seed, load  # noqa: E402
-from dsg_gym.collect.cli import main  # noqa: E402
-from dsg_gym.collect.run import WORK_DIR  # noqa: E402
-from dsg_gym.collect.writer import ShardStore  # noqa: E402
+import dsg_gym  # noqa: F401
+from dsg_gym.collect import CollectError, collect, episode_seed, load
+from dsg_gym.collect.cli import main
+from dsg_gym.collect.run import WORK_DIR
+from dsg_gym.collect.writer import ShardStore
 
 KW = {"width": 32, "height": 32}
 SEED = 7
@@ -111,7 +111,9 @@ def test_random_roundtrip_exact(random_ref, monkeypatch):
 
 
 def test_expert_async_two_envs(tmp_path):
-    res = collect(tmp_path, env_kwargs=KW, policy="expert", episodes=3, num_envs=2, seed=1, max_episode_steps=60)
+    res = collect(
+        tmp_path, env_kwargs=KW, policy="expert", episodes=3, num_envs=2, seed=1, max_episode_steps=60
+    )
     ds = load(res.path)
     eps = _episodes(ds)
     assert res.success_rate == 1.0 and all(e.terminations[-1] for e in eps)
@@ -125,7 +127,14 @@ def test_expert_async_two_envs(tmp_path):
 
 def test_interrupt_then_resume(tmp_path):
     pol = Interrupting(at=15)  # episode 0 done (6 calls), 1 done (12), KeyboardInterrupt in episode 2
-    kw = dict(env_kwargs=KW, episodes=3, seed=SEED, max_episode_steps=6, shard_episodes=1, dataset_id="tt/x-v0")
+    kw = {
+        "env_kwargs": KW,
+        "episodes": 3,
+        "seed": SEED,
+        "max_episode_steps": 6,
+        "shard_episodes": 1,
+        "dataset_id": "tt/x-v0",
+    }
     with pytest.raises(KeyboardInterrupt):
         collect(tmp_path, policy=pol, **kw)
     assert not (tmp_path / "tt" / "x-v0").exists()  # no half-written dataset
@@ -160,7 +169,9 @@ def test_interrupt_then_resume(tmp_path):
 )
 def test_bad_policy_stops_and_keeps_finished(tmp_path, policy, match):
     with pytest.raises(CollectError, match=match) as ei:
-        collect(tmp_path, env_kwargs=KW, policy=policy, episodes=3, seed=0, max_episode_steps=5, shard_episodes=4)
+        collect(
+            tmp_path, env_kwargs=KW, policy=policy, episodes=3, seed=0, max_episode_steps=5, shard_episodes=4
+        )
     assert "episode 1 step 2" in str(ei.value)
     shards = ShardStore(tmp_path / WORK_DIR / "dsgworld__interrupting-v0" / "shards").shards()
     assert [s.indices for s in shards] == [(0,)]  # the finished episode was flushed on the error
@@ -181,8 +192,21 @@ def test_jpeg_is_opt_in_and_lossy(tmp_path, random_ref):
 
 
 def test_cli_module_callable_and_existing_output(tmp_path, capsys):
-    args = ["--env-kwargs", json.dumps({**KW, "obs": ["mask", "poses"]}), "--policy", "test_collect:zero_policy",
-            "--episodes", "2", "--out", str(tmp_path), "--seed", "3", "--max-episode-steps", "4", "--no-progress"]
+    args = [
+        "--env-kwargs",
+        json.dumps({**KW, "obs": ["mask", "poses"]}),
+        "--policy",
+        "test_collect:zero_policy",
+        "--episodes",
+        "2",
+        "--out",
+        str(tmp_path),
+        "--seed",
+        "3",
+        "--max-episode-steps",
+        "4",
+        "--no-progress",
+    ]
     assert main(args) == 0
     assert "dsgworld/zero_policy-v0" in capsys.readouterr().out
     ds = load(tmp_path / "dsgworld" / "zero_policy-v0")
@@ -192,7 +216,12 @@ def test_cli_module_callable_and_existing_output(tmp_path, capsys):
     assert main(args) == 1  # the dataset exists: refused without --overwrite
     assert "already exists" in capsys.readouterr().err
     assert main(args + ["--overwrite"]) == 0
-    assert main(["--policy", "no_such_module:f", "--episodes", "1", "--out", str(tmp_path / "b"), "--no-progress"]) == 1
+    assert (
+        main(
+            ["--policy", "no_such_module:f", "--episodes", "1", "--out", str(tmp_path / "b"), "--no-progress"]
+        )
+        == 1
+    )
     assert "cannot import module 'no_such_module'" in capsys.readouterr().err
     assert main(["--env-kwargs", "{bad", "--episodes", "1", "--out", str(tmp_path)]) == 2
 

@@ -14,9 +14,9 @@ from .run import CollectResult, collect, default_dataset_id
 
 __all__ = [
     "BUILTIN_POLICIES",
+    "DEFAULT_INFO_KEYS",
     "CollectError",
     "CollectResult",
-    "DEFAULT_INFO_KEYS",
     "EpisodeRecord",
     "ExpertPolicy",
     "PolicyError",

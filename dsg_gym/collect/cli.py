@@ -7,7 +7,7 @@ import json
 import os
 import sys
 
-__all__ = ["main", "build_parser"]
+__all__ = ["build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -18,7 +18,9 @@ def build_parser() -> argparse.ArgumentParser:
         "Nothing is uploaded.",
     )
     p.add_argument("--env", default="DSGWorld-v0", help="Gymnasium env id (default DSGWorld-v0)")
-    p.add_argument("--env-kwargs", default="{}", metavar="JSON", help='env kwargs as JSON, e.g. \'{"width": 64}\'')
+    p.add_argument(
+        "--env-kwargs", default="{}", metavar="JSON", help="env kwargs as JSON, e.g. '{\"width\": 64}'"
+    )
     p.add_argument("--policy", default="random", help="random | expert | module:callable (obs -> action)")
     p.add_argument("--episodes", type=int, required=True)
     p.add_argument("--num-envs", type=int, default=1, help="envs in the vector env (async for > 1)")
@@ -26,14 +28,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None, help="base seed (default: random, recorded)")
     p.add_argument("--dataset-id", default=None, help="Minari dataset id (default <env>/<policy>-v0)")
     p.add_argument("--max-episode-steps", type=int, default=None, help="time limit (default: the env's, 200)")
-    p.add_argument("--image-encoding", choices=("raw", "jpeg"), default="raw",
-                   help="raw: lossless uint8 RGB (default); jpeg: Minari's lossy JPEG frames (smaller)")
+    p.add_argument(
+        "--image-encoding",
+        choices=("raw", "jpeg"),
+        default="raw",
+        help="raw: lossless uint8 RGB (default); jpeg: Minari's lossy JPEG frames (smaller)",
+    )
     p.add_argument("--resume", action="store_true", help="continue an interrupted run with the same settings")
     p.add_argument("--overwrite", action="store_true", help="discard an unfinished run / replace the dataset")
     p.add_argument("--shard-episodes", type=int, default=16, help="finished episodes per shard (default 16)")
     p.add_argument("--backend", choices=("local", "ray"), default="local")
     p.add_argument("--ray-workers", type=int, default=None, help="Ray tasks (default: CPUs / num-envs)")
-    p.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local instance)")
+    p.add_argument(
+        "--ray-address", default=None, help="Ray cluster address (default: start a local instance)"
+    )
     p.add_argument("--keep-shards", action="store_true", help="keep the shard datasets after combining")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -42,9 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "egl")
+    from .policies import policy_name
     from .rollout import CollectError
     from .run import WORK_DIR, collect, default_dataset_id
-    from .policies import policy_name
 
     try:
         env_kwargs = json.loads(args.env_kwargs)
@@ -75,8 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"dataset {res.dataset_id}: {res.episodes} episodes, {res.transitions} transitions, success rate "
         f"{res.success_rate:.1%}; this run: {res.new_episodes} episodes, {res.new_transitions} transitions in "
-        f"{res.seconds:.1f} s ({res.transitions_per_second:.0f} transitions/s)\n"
-        f"written to {res.path}\nload: MINARI_DATASETS_PATH={args.out} python -c \"import minari; "
+        f"{res.seconds:.1f} s ({res.transitions_per_second:.0f} transitions/s with start-up)\n"
+        f'written to {res.path}\nload: MINARI_DATASETS_PATH={args.out} python -c "import minari; '
         f"print(minari.load_dataset('{res.dataset_id}'))\""
     )
     return 0

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..poses import quat_multiply, quat_to_rotmat
 
-__all__ = ["RandomPolicy", "ExpertPolicy", "PolicyError", "policy_factory", "policy_name", "BUILTIN_POLICIES"]
+__all__ = ["BUILTIN_POLICIES", "ExpertPolicy", "PolicyError", "RandomPolicy", "policy_factory", "policy_name"]
 
 BUILTIN_POLICIES = ("random", "expert")
 
@@ -126,8 +126,10 @@ def _load_callable(spec: str) -> Callable:
         raise PolicyError(f"policy must be 'random', 'expert' or 'module:callable', got {spec!r}")
     try:
         obj: Any = importlib.import_module(mod_name)
-    except Exception as e:  # noqa: BLE001 - any import failure is reported the same way
-        raise PolicyError(f"policy {spec!r}: cannot import module {mod_name!r}: {type(e).__name__}: {e}") from e
+    except Exception as e:
+        raise PolicyError(
+            f"policy {spec!r}: cannot import module {mod_name!r}: {type(e).__name__}: {e}"
+        ) from e
     for part in attr.split("."):
         try:
             obj = getattr(obj, part)

@@ -29,7 +29,9 @@ def import_ray():
     try:
         import ray
     except ImportError as e:
-        raise CollectError("backend 'ray' needs Ray: pip install 'dsg-gym[ray]' (or pip install 'ray>=2.9')") from e
+        raise CollectError(
+            "backend 'ray' needs Ray: pip install 'dsg-gym[ray]' (or pip install 'ray>=2.9')"
+        ) from e
     return ray
 
 
@@ -99,7 +101,7 @@ def collect_ray(
                 for r in ready:
                     try:
                         got = ray.get(r)
-                    except Exception as e:  # noqa: BLE001 - RayTaskError wraps the worker's exception
+                    except Exception as e:
                         cause = getattr(e, "cause", None) or e
                         raise CollectError(f"a Ray worker failed: {type(cause).__name__}: {cause}") from e
                     stats["episodes"] += got["episodes"]

@@ -25,9 +25,9 @@ import gymnasium as gym
 import numpy as np
 
 __all__ = [
+    "DEFAULT_INFO_KEYS",
     "CollectError",
     "EpisodeRecord",
-    "DEFAULT_INFO_KEYS",
     "episode_seed",
     "make_env",
     "make_vector_env",
@@ -165,9 +165,13 @@ def _check_action(action, space: gym.spaces.Box, where: str) -> np.ndarray:
             raise TypeError(f"not numeric ({a.dtype})")
         a = a.astype(space.dtype)
     except (TypeError, ValueError) as e:
-        raise CollectError(f"{where}: the policy returned a bad action ({type(action).__name__}: {e})") from None
+        raise CollectError(
+            f"{where}: the policy returned a bad action ({type(action).__name__}: {e})"
+        ) from None
     if a.shape != space.shape:
-        raise CollectError(f"{where}: the policy returned an action of shape {a.shape}, expected {space.shape}")
+        raise CollectError(
+            f"{where}: the policy returned an action of shape {a.shape}, expected {space.shape}"
+        )
     if not np.all(np.isfinite(a)):
         raise CollectError(f"{where}: the policy returned an action with NaN or Inf: {a}")
     if np.any(a < space.low) or np.any(a > space.high):
@@ -228,14 +232,16 @@ def rollout(
             if callable(reset):
                 try:
                     reset(b.seed)
-                except Exception as e:  # noqa: BLE001
-                    raise CollectError(f"{policy_label}.reset raised at episode {b.index}: {type(e).__name__}: {e}") from e
+                except Exception as e:
+                    raise CollectError(
+                        f"{policy_label}.reset raised at episode {b.index}: {type(e).__name__}: {e}"
+                    ) from e
 
     mask = np.ones(n, dtype=bool)
     seeds = assign(mask)
     try:
         obs, info = envs.reset(seed=seeds)
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         raise CollectError(f"env reset failed: {type(e).__name__}: {e}") from e
     start(mask, obs, info)
     while any(b is not None for b in bufs):
@@ -248,19 +254,26 @@ def rollout(
                 a = policies[i](copy.deepcopy(b.obs[-1]))  # the stored observation stays intact
             except (KeyboardInterrupt, CollectError):
                 raise
-            except Exception as e:  # noqa: BLE001
+            except Exception as e:
                 raise CollectError(f"{where}: {policy_label} raised {type(e).__name__}: {e}") from e
             actions[i] = _check_action(a, space, where)
         try:
             obs, rew, term, trunc, info = envs.step(actions)
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:
             raise CollectError(f"env step failed: {type(e).__name__}: {e}") from e
         done = np.zeros(n, dtype=bool)
         stepped = 0
         for i, b in enumerate(bufs):
             if b is None:
                 continue
-            b.add(actions[i].copy(), _slot(obs, i), float(rew[i]), term[i], trunc[i], _slot_info(info, i, info_keys))
+            b.add(
+                actions[i].copy(),
+                _slot(obs, i),
+                float(rew[i]),
+                term[i],
+                trunc[i],
+                _slot_info(info, i, info_keys),
+            )
             stepped += 1
             if term[i] or trunc[i]:
                 done[i] = True
@@ -272,7 +285,7 @@ def rollout(
             seeds = assign(done)
             try:
                 obs, info = envs.reset(seed=seeds, options={"reset_mask": done})
-            except Exception as e:  # noqa: BLE001
+            except Exception as e:
                 raise CollectError(f"env reset failed: {type(e).__name__}: {e}") from e
             start(done, obs, info)
     return total

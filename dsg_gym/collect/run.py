@@ -16,9 +16,16 @@ import numpy as np
 
 from .policies import PolicyError, policy_factory, policy_name
 from .rollout import CollectError, EpisodeRecord, make_env, make_vector_env, rollout
-from .writer import IMAGE_ENCODINGS, ShardStore, combine_shards, env_spec_for, remove_partial, write_json_atomic
+from .writer import (
+    IMAGE_ENCODINGS,
+    ShardStore,
+    combine_shards,
+    env_spec_for,
+    remove_partial,
+    write_json_atomic,
+)
 
-__all__ = ["CollectResult", "collect", "collect_episodes", "default_dataset_id", "WORK_DIR"]
+__all__ = ["WORK_DIR", "CollectResult", "collect", "collect_episodes", "default_dataset_id"]
 
 #: hidden folder under the output root that holds unfinished runs
 WORK_DIR = ".dsg-collect"

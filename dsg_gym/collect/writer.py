@@ -35,7 +35,6 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
 from .rollout import CollectError, EpisodeRecord
 
@@ -60,7 +59,9 @@ def _minari():
         import minari
         from minari.dataset.minari_storage import MinariStorage
     except ImportError as e:  # pragma: no cover - minari is a dependency
-        raise CollectError(f"data collection needs minari with HDF5 support: pip install 'minari[hdf5]' ({e})") from e
+        raise CollectError(
+            f"data collection needs minari with HDF5 support: pip install 'minari[hdf5]' ({e})"
+        ) from e
     return minari, MinariStorage
 
 
@@ -100,7 +101,11 @@ def remove_partial(folder: Path, name: str = "") -> None:
     """Delete temporaries left by interrupted writes in ``folder`` (only those of ``name`` if given)."""
     if folder.is_dir():
         for p in folder.iterdir():
-            ours = p.name.startswith(f".{name}{_TMP_TAG}") if name else p.name.startswith(".") and _TMP_TAG in p.name
+            ours = (
+                p.name.startswith(f".{name}{_TMP_TAG}")
+                if name
+                else p.name.startswith(".") and _TMP_TAG in p.name
+            )
             if ours:
                 shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
@@ -157,7 +162,9 @@ def write_storage(
             data_path, observation_space=observation_space, action_space=action_space, env_spec=env_spec,
             data_format=data_format, **_jpeg_kw(jpeg),
         )  # fmt: skip
-    storage.update_metadata({"dataset_id": dataset_id, "minari_version": minari.__version__, **(metadata or {})})
+    storage.update_metadata(
+        {"dataset_id": dataset_id, "minari_version": minari.__version__, **(metadata or {})}
+    )
     n = 0
     for buf in buffers:
         storage.update_episodes([buf])
@@ -215,7 +222,9 @@ class ShardStore:
                 out.append(ShardInfo(p, tuple(meta["episode_indices"]), tuple(meta["episode_seeds"]),
                                      tuple(meta["episode_steps"]), tuple(meta["episode_success"])))  # fmt: skip
             except (OSError, ValueError, KeyError) as e:
-                raise CollectError(f"unreadable shard {p}: {e}; delete it to collect its episodes again") from e
+                raise CollectError(
+                    f"unreadable shard {p}: {e}; delete it to collect its episodes again"
+                ) from e
         return out
 
     def done(self) -> dict[int, tuple[ShardInfo, int]]:

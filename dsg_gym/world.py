@@ -43,8 +43,8 @@ __all__ = [
     "GAUSSIAN_FIELDS",
     "Cameras",
     "World",
-    "WorldObject",
     "WorldFormatError",
+    "WorldObject",
     "load_world",
     "parse_world_bytes",
     "transform_gaussians",
@@ -97,7 +97,9 @@ class World:
         for s, P in self.poses.items():
             if P.shape != (k, 4, 4):
                 raise ValueError(f"World.poses[{s!r}]: shape {P.shape}, expected ({k}, 4, 4)")
-        if self.classifier_weight.ndim != 2 or self.classifier_bias.shape != (self.classifier_weight.shape[0],):
+        if self.classifier_weight.ndim != 2 or self.classifier_bias.shape != (
+            self.classifier_weight.shape[0],
+        ):
             raise ValueError("World: classifier weight must be [K+1, F] and bias [K+1]")
 
     @property
@@ -142,19 +144,28 @@ class World:
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
 
 
 def _rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     m = R
     tr = np.trace(m)
-    cands = np.array([
-        [1 + tr, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]],
-        [m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]],
-        [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1]],
-        [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2]],
-    ])
+    cands = np.array(
+        [
+            [1 + tr, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]],
+            [m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]],
+            [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1]],
+            [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2]],
+        ]
+    )
     q = cands[int(np.argmax([tr, m[0, 0], m[1, 1], m[2, 2]]))]
     q = q / np.linalg.norm(q)
     return -q if q[0] < 0 else q
@@ -166,8 +177,17 @@ def transform_gaussians(g: GaussianSet, T: np.ndarray) -> GaussianSet:
     R, t = T[:3, :3], T[:3, 3]
     means = g.means.astype(np.float64) @ R.T + t
     quats = _quat_mul(_rotmat_to_quat(R)[None], g.quats.astype(np.float64))
-    return GaussianSet(means, quats, g.scales, g.opacities, g.sh, g.features, g.labels,
-                       opacity_logits=g.opacity_logits, log_scales=g.log_scales)
+    return GaussianSet(
+        means,
+        quats,
+        g.scales,
+        g.opacities,
+        g.sh,
+        g.features,
+        g.labels,
+        opacity_logits=g.opacity_logits,
+        log_scales=g.log_scales,
+    )
 
 
 # ----------------------------------------------------------------------------------- reading
@@ -195,14 +215,20 @@ def parse_world_bytes(data: bytes, src: str = "<bytes>") -> World:
     except (KeyError, TypeError, ValueError) as e:
         raise _fail(src, f"not a world file (no {META_KEY!r} metadata: {e})") from e
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
-        raise _fail(src, f"not a world file (format {doc.get('format') if isinstance(doc, dict) else None!r})")
+        raise _fail(
+            src, f"not a world file (format {doc.get('format') if isinstance(doc, dict) else None!r})"
+        )
     version = doc.get("format_version")
     if version != FORMAT_VERSION:
-        raise _fail(src, f"unknown world format version {version!r} (this dsg_gym reads version {FORMAT_VERSION})")
+        raise _fail(
+            src, f"unknown world format version {version!r} (this dsg_gym reads version {FORMAT_VERSION})"
+        )
     body = memoryview(data)[8 + hlen :]
     end = max((int(v["data_offsets"][1]) for v in header.values()), default=0)
     if len(body) != end:
-        raise _fail(src, f"truncated or padded world file: tensor data is {len(body)} bytes, header needs {end}")
+        raise _fail(
+            src, f"truncated or padded world file: tensor data is {len(body)} bytes, header needs {end}"
+        )
     if hashlib.sha256(body).hexdigest() != doc.get("sha256"):
         raise _fail(src, "checksum mismatch: the world file is corrupt")
     arrays: dict[str, np.ndarray] = {}
@@ -231,10 +257,14 @@ def _gaussian_set(arrays: dict[str, np.ndarray], prefix: str) -> GaussianSet:
 def _build(arrays: dict[str, np.ndarray], doc: dict, version: int) -> World:
     objects = {}
     for o in doc["objects"]:
-        objects[int(o["id"])] = WorldObject(str(o["name"]), _gaussian_set(arrays, f"gaussians/object_{o['id']}"))
+        objects[int(o["id"])] = WorldObject(
+            str(o["name"]), _gaussian_set(arrays, f"gaussians/object_{o['id']}")
+        )
     poses = {s: arrays[f"poses/{s}"] for s in doc["states"]}
     cameras = {
-        s: Cameras(arrays[f"cameras/{s}/viewmats"], arrays[f"cameras/{s}/Ks"], int(c["width"]), int(c["height"]))
+        s: Cameras(
+            arrays[f"cameras/{s}/viewmats"], arrays[f"cameras/{s}/Ks"], int(c["width"]), int(c["height"])
+        )
         for s, c in doc["cameras"].items()
     }
     return World(

@@ -21,11 +21,47 @@ LEGO = Path(__file__).resolve().parents[2] / "shared" / "external" / "nerf_synth
 def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
     cap = root / "cap"
-    assert synth_main(["--scene", "three_primitives", "--out", str(cap), "--width", "32", "--height", "32",
-                       "--views", "10", "--test-views", "3", "--test-states", "1", "--quiet"]) == 0
+    assert (
+        synth_main(
+            [
+                "--scene",
+                "three_primitives",
+                "--out",
+                str(cap),
+                "--width",
+                "32",
+                "--height",
+                "32",
+                "--views",
+                "10",
+                "--test-views",
+                "3",
+                "--test-states",
+                "1",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     world = root / "w.dsgw"
-    assert cli.main([str(cap), "--out", str(world), "--preset", "quick", "--iterations", "60",
-                     "--single-state", "--holdout-every", "4", "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                str(cap),
+                "--out",
+                str(world),
+                "--preset",
+                "quick",
+                "--iterations",
+                "60",
+                "--single-state",
+                "--holdout-every",
+                "4",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return cap, world, root
 
 
@@ -87,8 +123,23 @@ def test_bad_world_is_refused(trained, tmp_path, capsys):
 @pytest.mark.skipif(not LEGO.is_dir(), reason="shared NeRF-Blender lego data not present")
 def test_blender_world_evaluates_on_the_test_split(tmp_path):
     world = tmp_path / "lego.dsgw"
-    assert cli.main([str(LEGO), "--out", str(world), "--preset", "quick", "--iterations", "15",
-                     "--downscale", "16", "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                str(LEGO),
+                "--out",
+                str(world),
+                "--preset",
+                "quick",
+                "--iterations",
+                "15",
+                "--downscale",
+                "16",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     r = ev.evaluate(world, LEGO, tmp_path / "r")
     assert r["views"] == 10 and r["image_size"] == [50, 50] and r["mean"]["mask_iou"] is None
     assert r["mean"]["psnr"] > 8  # white background over white: even a poor world gets the background right

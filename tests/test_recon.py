@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -25,8 +24,25 @@ from train_world.world_writer import encode_world
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     out = tmp_path_factory.mktemp("cap") / "two_blocks"
-    rc = synth_main(["--scene", "two_blocks", "--out", str(out), "--width", "32", "--height", "32",
-                     "--views", "16", "--test-views", "2", "--test-states", "1", "--quiet"])
+    rc = synth_main(
+        [
+            "--scene",
+            "two_blocks",
+            "--out",
+            str(out),
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--views",
+            "16",
+            "--test-views",
+            "2",
+            "--test-states",
+            "1",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     return out
 
@@ -108,7 +124,9 @@ def test_densification_clones_splits_and_prunes_hand_made_cases():
     assert rows.count(before[1]) == 2  # split in two ...
     split_scales = f.scales().detach()[feats[:, 0] == before[1][0]]
     big = math.exp(math.log(0.5) - 5e-3)  # the Adam step moved the log-scale by -lr
-    assert torch.allclose(split_scales, torch.full_like(split_scales, big / 1.6), rtol=1e-4)  # ... scale / 1.6
+    assert torch.allclose(
+        split_scales, torch.full_like(split_scales, big / 1.6), rtol=1e-4
+    )  # ... scale / 1.6
     assert before[2] not in rows  # pruned
     assert before[3] in rows  # untouched
     for name, p in f.params().items():
@@ -152,8 +170,9 @@ def test_render_transform_hook_matches_moving_the_camera(tiny):
     with torch.no_grad():
         a = t.field.render(d.viewmats[:2], d.Ks[:2], d.width, d.height, transform=T, sh_degree=0)
         b = t.field.render(d.viewmats[:2] @ T, d.Ks[:2], d.width, d.height, sh_degree=0)
-        per = t.field.render(d.viewmats[:2], d.Ks[:2], d.width, d.height, sh_degree=0,
-                             transform=T.expand(t.field.num, 4, 4))
+        per = t.field.render(
+            d.viewmats[:2], d.Ks[:2], d.width, d.height, sh_degree=0, transform=T.expand(t.field.num, 4, 4)
+        )
         plain = t.field.render(d.viewmats[:2], d.Ks[:2], d.width, d.height, sh_degree=0)
     assert torch.allclose(a.rgb, b.rgb, atol=2e-3) and torch.allclose(a.features, b.features, atol=2e-3)
     assert torch.allclose(a.rgb, per.rgb, atol=1e-5)
@@ -161,8 +180,14 @@ def test_render_transform_hook_matches_moving_the_camera(tiny):
 
 
 def test_resume_after_kill_gives_the_same_world(tiny, tmp_path):
-    cfg = _config(iterations=40, checkpoint_every=15, densify_from=10, densify_every=10, densify_until=35,
-                  reset_every=25)
+    cfg = _config(
+        iterations=40,
+        checkpoint_every=15,
+        densify_from=10,
+        densify_every=10,
+        densify_until=35,
+        reset_every=25,
+    )
     data = load_training_data(tiny, cfg)
     full = Trainer(data, cfg, checkpoint=tmp_path / "a.ckpt")
     full.train(progress=False)
@@ -217,8 +242,9 @@ def test_cli_help_and_quick_run(tiny, tmp_path, capsys):
         cli.main(["--help"])
     assert e.value.code == 0 and "--preset" in capsys.readouterr().out
     out = tmp_path / "w.dsgw"
-    rc = cli.main([str(tiny), "--out", str(out), "--preset", "quick", "--iterations", "20", "--single-state",
-                   "--quiet"])
+    rc = cli.main(
+        [str(tiny), "--out", str(out), "--preset", "quick", "--iterations", "20", "--single-state", "--quiet"]
+    )
     assert rc == 0
     w = load_world(out)
     assert w.object_names == ("red_box", "blue_cylinder") and w.metadata["iterations"] == 20

@@ -23,10 +23,15 @@ def _random_set(rng, n, degree=1, nf=16, encodings=True):
     logits = rng.normal(size=n).astype(np.float32)
     log_s = rng.normal(-4, 1, size=(n, 3)).astype(np.float32)
     return GaussianSet(
-        means=rng.normal(size=(n, 3)), quats=q, scales=np.exp(log_s.astype(np.float64)),
-        opacities=1 / (1 + np.exp(-logits.astype(np.float64))), sh=rng.normal(size=(n, (degree + 1) ** 2, 3)),
-        features=rng.normal(size=(n, nf)), labels=rng.integers(0, 3, n),
-        opacity_logits=logits if encodings else None, log_scales=log_s if encodings else None,
+        means=rng.normal(size=(n, 3)),
+        quats=q,
+        scales=np.exp(log_s.astype(np.float64)),
+        opacities=1 / (1 + np.exp(-logits.astype(np.float64))),
+        sh=rng.normal(size=(n, (degree + 1) ** 2, 3)),
+        features=rng.normal(size=(n, nf)),
+        labels=rng.integers(0, 3, n),
+        opacity_logits=logits if encodings else None,
+        log_scales=log_s if encodings else None,
     )
 
 
@@ -34,9 +39,13 @@ def _rigid(rng):
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
     w, x, y, z = q
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    R = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, rng.normal(size=3)
     return T
@@ -49,10 +58,19 @@ def world():
     return World(
         background=_random_set(rng, 11, encodings=False),
         objects=MappingProxyType(objects),
-        poses=MappingProxyType({"state1": np.stack([_rigid(rng), _rigid(rng)]),
-                                "state2": np.stack([_rigid(rng), _rigid(rng)])}),
-        cameras=MappingProxyType({"state1": Cameras(rng.normal(size=(3, 4, 4)).astype(np.float32),
-                                                    rng.normal(size=(3, 3, 3)).astype(np.float32), 32, 24)}),
+        poses=MappingProxyType(
+            {"state1": np.stack([_rigid(rng), _rigid(rng)]), "state2": np.stack([_rigid(rng), _rigid(rng)])}
+        ),
+        cameras=MappingProxyType(
+            {
+                "state1": Cameras(
+                    rng.normal(size=(3, 4, 4)).astype(np.float32),
+                    rng.normal(size=(3, 3, 3)).astype(np.float32),
+                    32,
+                    24,
+                )
+            }
+        ),
         classifier_weight=rng.normal(size=(3, 16)).astype(np.float32),
         classifier_bias=rng.normal(size=3).astype(np.float32),
         metadata={"reference_state": "state1", "train_config": {"seed": 0, "preset": {"name": "quick"}}},
@@ -61,7 +79,17 @@ def world():
 
 
 def _same_set(a: GaussianSet, b: GaussianSet):
-    for f in ("means", "quats", "scales", "opacities", "sh", "features", "labels", "opacity_logits", "log_scales"):
+    for f in (
+        "means",
+        "quats",
+        "scales",
+        "opacities",
+        "sh",
+        "features",
+        "labels",
+        "opacity_logits",
+        "log_scales",
+    ):
         va, vb = getattr(a, f), getattr(b, f)
         if va is None or vb is None:
             assert va is None and vb is None, f
@@ -136,9 +164,19 @@ def test_build_world_puts_objects_in_their_frame_and_back():
     g = _random_set(rng, 40, encodings=False)
     classes = rng.integers(0, 3, 40)
     P = np.stack([_rigid(rng), _rigid(rng)])
-    w = build_world(g, classes, (2, 5), ("a", "b"), {"s1": P}, "s1",
-                    {"s1": Cameras(np.eye(4, dtype=np.float32)[None], np.eye(3, dtype=np.float32)[None], 8, 8)},
-                    np.zeros((3, 16), np.float32), np.zeros(3, np.float32), "metres", {})
+    w = build_world(
+        g,
+        classes,
+        (2, 5),
+        ("a", "b"),
+        {"s1": P},
+        "s1",
+        {"s1": Cameras(np.eye(4, dtype=np.float32)[None], np.eye(3, dtype=np.float32)[None], 8, 8)},
+        np.zeros((3, 16), np.float32),
+        np.zeros(3, np.float32),
+        "metres",
+        {},
+    )
     assert w.background.num == int((classes == 0).sum())
     assert w.objects[5].gaussians.num == int((classes == 2).sum())
     assert set(np.unique(w.objects[2].gaussians.labels)) <= {2}
@@ -163,9 +201,13 @@ def test_build_world_puts_objects_in_their_frame_and_back():
 
 def test_reader_does_not_need_torch(tmp_path, world):
     path = write_world(tmp_path / "w.dsgw", world)
-    code = ("import sys; sys.modules['torch'] = None\n"
-            "from dsg_gym.world import load_world\n"
-            f"w = load_world({str(path)!r}); print(w.background.num, 'torch' in sys.modules and sys.modules['torch'])")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "from dsg_gym.world import load_world\n"
+        f"w = load_world({str(path)!r}); print(w.background.num, 'torch' in sys.modules and sys.modules['torch'])"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[0] == "11"

@@ -19,6 +19,10 @@ Example::
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see train_world.recon: before torch/numba load OpenMP
+
 import argparse
 import json
 import math
@@ -28,7 +32,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image
 
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.splat import rasterize, spherical_harmonics
@@ -37,27 +40,55 @@ from train_world.data import CaptureError, load_capture
 from train_world.data.format import atomic_write_bytes, atomic_write_json, encode_png
 from train_world.recon.data import load_eval_views
 
-__all__ = ["render_gaussians", "evaluate", "main", "mask_iou"]
+__all__ = ["evaluate", "main", "mask_iou", "render_gaussians"]
 
-_PALETTE = np.array([[0, 0, 0], [230, 25, 75], [60, 180, 75], [255, 225, 25], [0, 130, 200], [245, 130, 48],
-                     [145, 30, 180], [70, 240, 240], [240, 50, 230], [210, 245, 60]], np.uint8)
+_PALETTE = np.array(
+    [
+        [0, 0, 0],
+        [230, 25, 75],
+        [60, 180, 75],
+        [255, 225, 25],
+        [0, 130, 200],
+        [245, 130, 48],
+        [145, 30, 180],
+        [70, 240, 240],
+        [240, 50, 230],
+        [210, 245, 60],
+    ],
+    np.uint8,
+)
 
 
 @torch.no_grad()
-def render_gaussians(g: GaussianSet, viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int,
-                     background=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+def render_gaussians(
+    g: GaussianSet, viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, background=(0.0, 0.0, 0.0)
+) -> tuple[np.ndarray, np.ndarray]:
     """RGB ``[V,H,W,3]`` and identity features ``[V,H,W,F]`` of ``g`` (one rasterizer call per view)."""
-    t = {k: torch.from_numpy(np.ascontiguousarray(getattr(g, k))) for k in
-         ("means", "quats", "scales", "opacities", "sh", "features")}
+    t = {
+        k: torch.from_numpy(np.ascontiguousarray(getattr(g, k)))
+        for k in ("means", "quats", "scales", "opacities", "sh", "features")
+    }
     F = t["features"].shape[1]
     bg = torch.cat([torch.tensor(background, dtype=torch.float32), torch.zeros(F)])
     rgbs, feats = [], []
-    for vm, K in zip(torch.from_numpy(np.asarray(viewmats, np.float32)), torch.from_numpy(np.asarray(Ks, np.float32))):
+    for vm, K in zip(
+        torch.from_numpy(np.asarray(viewmats, np.float32)), torch.from_numpy(np.asarray(Ks, np.float32))
+    ):
         campos = torch.linalg.inv(vm)[:3, 3]
         rgb = torch.clamp_min(spherical_harmonics(g.sh_degree, t["means"] - campos, t["sh"]) + 0.5, 0.0)
         cols = torch.cat([rgb, t["features"]], -1)
-        out, _, _ = rasterize(t["means"], t["quats"], t["scales"], t["opacities"], cols, vm[None], K[None],
-                              int(width), int(height), backgrounds=bg)
+        out, _, _ = rasterize(
+            t["means"],
+            t["quats"],
+            t["scales"],
+            t["opacities"],
+            cols,
+            vm[None],
+            K[None],
+            int(width),
+            int(height),
+            backgrounds=bg,
+        )
         rgbs.append(out[0, ..., :3].numpy())
         feats.append(out[0, ..., 3:].numpy())
     return np.stack(rgbs), np.stack(feats)
@@ -81,8 +112,17 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 def _ssim(a: np.ndarray, b: np.ndarray) -> float:
     from skimage.metrics import structural_similarity
 
-    return float(structural_similarity(a, b, channel_axis=2, data_range=1.0, gaussian_weights=True,
-                                       sigma=1.5, use_sample_covariance=False))
+    return float(
+        structural_similarity(
+            a,
+            b,
+            channel_axis=2,
+            data_range=1.0,
+            gaussian_weights=True,
+            sigma=1.5,
+            use_sample_covariance=False,
+        )
+    )
 
 
 def _u8(img: np.ndarray) -> np.ndarray:
@@ -96,7 +136,9 @@ def _grid(rows: list[list[np.ndarray]]) -> np.ndarray:
     out = np.full((len(rows) * (h + pad) + pad, ncol * (w + pad) + pad, 3), 255, np.uint8)
     for i, r in enumerate(rows):
         for j, img in enumerate(r):
-            out[pad + i * (h + pad): pad + i * (h + pad) + h, pad + j * (w + pad): pad + j * (w + pad) + w] = img
+            out[
+                pad + i * (h + pad) : pad + i * (h + pad) + h, pad + j * (w + pad) : pad + j * (w + pad) + w
+            ] = img
     return out
 
 
@@ -111,8 +153,14 @@ def _poses_for(world: World, capture: Path, state: str) -> np.ndarray:
     return np.asarray(cap.poses[state], dtype=np.float64)
 
 
-def evaluate(world_path: str | Path, capture: str | Path, out_dir: str | Path, *, state: str | None = None,
-             max_grid_rows: int = 8) -> dict[str, Any]:
+def evaluate(
+    world_path: str | Path,
+    capture: str | Path,
+    out_dir: str | Path,
+    *,
+    state: str | None = None,
+    max_grid_rows: int = 8,
+) -> dict[str, Any]:
     """Evaluate and write the report files; returns the report dictionary."""
     world = load_world(world_path)
     meta = world.metadata
@@ -120,13 +168,24 @@ def evaluate(world_path: str | Path, capture: str | Path, out_dir: str | Path, *
     trained_state = meta.get("state", meta.get("reference_state"))
     bg = tuple(meta.get("background", (0.0, 0.0, 0.0)))
     eval_state = state or trained_state
-    views = load_eval_views(capture, state=eval_state, heldout=tuple(meta.get("heldout_views", ())),
-                            downscale=int(src.get("downscale", 1)), background=bg,
-                            object_ids=world.object_ids, all_views=state is not None and state != trained_state)
-    if src.get("kind") == "capture" and views.width * views.height and (views.width, views.height) != tuple(
-            meta.get("image_size", (views.width, views.height))):
-        raise ValueError(f"{capture}: views are {views.width}x{views.height}, the world was trained at "
-                         f"{meta.get('image_size')}")
+    views = load_eval_views(
+        capture,
+        state=eval_state,
+        heldout=tuple(meta.get("heldout_views", ())),
+        downscale=int(src.get("downscale", 1)),
+        background=bg,
+        object_ids=world.object_ids,
+        all_views=state is not None and state != trained_state,
+    )
+    if (
+        src.get("kind") == "capture"
+        and views.width * views.height
+        and (views.width, views.height) != tuple(meta.get("image_size", (views.width, views.height)))
+    ):
+        raise ValueError(
+            f"{capture}: views are {views.width}x{views.height}, the world was trained at "
+            f"{meta.get('image_size')}"
+        )
     poses = _poses_for(world, Path(capture), eval_state) if world.num_objects else None
     g = world.gaussians(poses=poses) if poses is not None else world.gaussians(state=trained_state)
     rgb, feats = render_gaussians(g, views.viewmats.numpy(), views.Ks.numpy(), views.width, views.height, bg)
@@ -139,9 +198,17 @@ def evaluate(world_path: str | Path, capture: str | Path, out_dir: str | Path, *
     union = np.zeros(k + 1)
     for i in range(len(gt_imgs)):
         ours = np.clip(rgb[i], 0, 1)
-        entry: dict[str, Any] = {"view": views.names[i], "index": views.indices[i],
-                                 "psnr": _psnr(ours, gt_imgs[i]), "ssim": _ssim(ours, gt_imgs[i])}
-        row = [_u8(gt_imgs[i]), _u8(ours), _u8(np.abs(ours - gt_imgs[i]).mean(-1, keepdims=True).repeat(3, -1) * 4)]
+        entry: dict[str, Any] = {
+            "view": views.names[i],
+            "index": views.indices[i],
+            "psnr": _psnr(ours, gt_imgs[i]),
+            "ssim": _ssim(ours, gt_imgs[i]),
+        }
+        row = [
+            _u8(gt_imgs[i]),
+            _u8(ours),
+            _u8(np.abs(ours - gt_imgs[i]).mean(-1, keepdims=True).repeat(3, -1) * 4),
+        ]
         if pred_cls is not None and gt_cls is not None:
             ious = mask_iou(pred_cls[i], gt_cls[i], range(1, k + 1))
             entry["mask_iou"] = {world.object_names[c - 1]: v for c, v in ious.items()}
@@ -154,16 +221,29 @@ def evaluate(world_path: str | Path, capture: str | Path, out_dir: str | Path, *
         per_view.append(entry)
         if len(rows) < max_grid_rows:
             rows.append(row)
-    obj_iou = {world.object_names[c - 1]: (float(inter[c] / union[c]) if union[c] > 0 else None)
-               for c in range(1, k + 1)} if gt_cls is not None and k else {}
+    obj_iou = (
+        {
+            world.object_names[c - 1]: (float(inter[c] / union[c]) if union[c] > 0 else None)
+            for c in range(1, k + 1)
+        }
+        if gt_cls is not None and k
+        else {}
+    )
     valid = [v for v in obj_iou.values() if v is not None]
     report = {
-        "world": str(world_path), "capture": str(capture), "state": eval_state,
-        "views": len(per_view), "image_size": [views.width, views.height],
-        "num_gaussians": int(g.num), "object_iou": obj_iou, "per_view": per_view,
-        "mean": {"psnr": float(np.mean([v["psnr"] for v in per_view])),
-                 "ssim": float(np.mean([v["ssim"] for v in per_view])),
-                 "mask_iou": float(np.mean(valid)) if valid else None},
+        "world": str(world_path),
+        "capture": str(capture),
+        "state": eval_state,
+        "views": len(per_view),
+        "image_size": [views.width, views.height],
+        "num_gaussians": int(g.num),
+        "object_iou": obj_iou,
+        "per_view": per_view,
+        "mean": {
+            "psnr": float(np.mean([v["psnr"] for v in per_view])),
+            "ssim": float(np.mean([v["ssim"] for v in per_view])),
+            "mask_iou": float(np.mean(valid)) if valid else None,
+        },
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -178,11 +258,18 @@ def _fmt(v) -> str:
 
 
 def _markdown(r: dict[str, Any]) -> str:
-    lines = [f"# Evaluation of `{Path(r['world']).name}` on `{r['state']}`", "",
-             f"{r['views']} views at {r['image_size'][0]}x{r['image_size'][1]}, {r['num_gaussians']} Gaussians.", "",
-             "| view | PSNR (dB) | SSIM | mask IoU |", "| --- | --- | --- | --- |"]
+    lines = [
+        f"# Evaluation of `{Path(r['world']).name}` on `{r['state']}`",
+        "",
+        f"{r['views']} views at {r['image_size'][0]}x{r['image_size'][1]}, {r['num_gaussians']} Gaussians.",
+        "",
+        "| view | PSNR (dB) | SSIM | mask IoU |",
+        "| --- | --- | --- | --- |",
+    ]
     for v in r["per_view"]:
-        lines.append(f"| {v['view']} | {_fmt(v['psnr'])} | {_fmt(v['ssim'])} | {_fmt(v.get('mean_mask_iou'))} |")
+        lines.append(
+            f"| {v['view']} | {_fmt(v['psnr'])} | {_fmt(v['ssim'])} | {_fmt(v.get('mean_mask_iou'))} |"
+        )
     m = r["mean"]
     lines.append(f"| **mean** | **{_fmt(m['psnr'])}** | **{_fmt(m['ssim'])}** | **{_fmt(m['mask_iou'])}** |")
     if r["object_iou"]:
@@ -192,14 +279,20 @@ def _markdown(r: dict[str, Any]) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dsg-eval", description=__doc__.split("\n")[0].split(": ", 1)[1],
-                                epilog=__doc__.split("Example::", 1)[1],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="dsg-eval",
+        description=__doc__.split("\n")[0].split(": ", 1)[1],
+        epilog=__doc__.split("Example::", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("world", type=Path, help="world file written by dsg-train")
     p.add_argument("capture", type=Path, help="the capture (or NeRF-Blender folder) it was trained on")
     p.add_argument("--out", type=Path, required=True, help="output folder for report.json/report.md/grid.png")
-    p.add_argument("--state", help="evaluate all views of this state at its object poses (default: the "
-                                   "held-out views of the training state)")
+    p.add_argument(
+        "--state",
+        help="evaluate all views of this state at its object poses (default: the "
+        "held-out views of the training state)",
+    )
     return p
 
 

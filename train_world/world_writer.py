@@ -27,7 +27,7 @@ from dsg_gym.world import (
 )
 from train_world.data.format import atomic_write_bytes
 
-__all__ = ["encode_world", "write_world", "build_world"]
+__all__ = ["build_world", "encode_world", "write_world"]
 
 
 def _add_set(arrays: dict[str, np.ndarray], prefix: str, g: GaussianSet) -> None:
@@ -67,11 +67,15 @@ def encode_world(world: World) -> bytes:
     arrays["classifier/weight"] = np.ascontiguousarray(world.classifier_weight, dtype=np.float32)
     arrays["classifier/bias"] = np.ascontiguousarray(world.classifier_bias, dtype=np.float32)
     doc = {
-        "objects": [{"id": oid, "name": world.objects[oid].name, "class": i + 1}
-                    for i, oid in enumerate(world.object_ids)],
+        "objects": [
+            {"id": oid, "name": world.objects[oid].name, "class": i + 1}
+            for i, oid in enumerate(world.object_ids)
+        ],
         "num_classes": world.num_objects + 1,
         "states": list(world.poses),
-        "cameras": {s: {"width": c.width, "height": c.height, "count": len(c)} for s, c in world.cameras.items()},
+        "cameras": {
+            s: {"width": c.width, "height": c.height, "count": len(c)} for s, c in world.cameras.items()
+        },
         "units": world.units,
         "metadata": _jsonable(world.metadata),
     }
@@ -113,8 +117,17 @@ def build_world(
     ``labels`` of every Gaussian become its object id (0 for the background)."""
     classes = np.asarray(classes, dtype=np.int64)
     ids = np.array((0,) + tuple(object_ids), dtype=np.int32)
-    g = GaussianSet(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.sh,
-                    gaussians.features, ids[classes], gaussians.opacity_logits, gaussians.log_scales)
+    g = GaussianSet(
+        gaussians.means,
+        gaussians.quats,
+        gaussians.scales,
+        gaussians.opacities,
+        gaussians.sh,
+        gaussians.features,
+        ids[classes],
+        gaussians.opacity_logits,
+        gaussians.log_scales,
+    )
     ref = np.asarray(poses[reference_state], dtype=np.float64)
     objects = {}
     for i, (oid, name) in enumerate(zip(object_ids, object_names)):

@@ -23,10 +23,10 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_VERSION",
     "CheckpointError",
-    "save_checkpoint",
     "load_checkpoint",
-    "optimizer_to_tensors",
     "optimizer_from_tensors",
+    "optimizer_to_tensors",
+    "save_checkpoint",
 ]
 
 CHECKPOINT_FORMAT = "dsg-train-checkpoint"
@@ -95,7 +95,9 @@ def optimizer_from_tensors(prefix: str, opt: torch.optim.Optimizer, tensors: dic
             key = f"{prefix}/{gi}.{pi}/"
             if key + "exp_avg" not in tensors:
                 continue
-            st = {k: tensors[key + k].clone() for k in ("step", "exp_avg", "exp_avg_sq") if key + k in tensors}
+            st = {
+                k: tensors[key + k].clone() for k in ("step", "exp_avg", "exp_avg_sq") if key + k in tensors
+            }
             if st["exp_avg"].shape != p.shape:
                 raise CheckpointError(
                     f"checkpoint {prefix}: Adam state shape {tuple(st['exp_avg'].shape)} != parameter "

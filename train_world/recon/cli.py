@@ -33,19 +33,37 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__.split("Examples::", 1)[1],
     )
-    p.add_argument("capture", type=Path, help="capture folder (scene.json) or NeRF-Blender folder/transforms json")
+    p.add_argument(
+        "capture", type=Path, help="capture folder (scene.json) or NeRF-Blender folder/transforms json"
+    )
     p.add_argument("--out", type=Path, required=True, help="world file to write (e.g. worlds/scene.dsgw)")
-    p.add_argument("--preset", choices=sorted(PRESETS), default="default",
-                   help="quick (tests), default (~15 min), paper (20k iterations); default: default")
+    p.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default="default",
+        help="quick (tests), default (~15 min), paper (20k iterations); default: default",
+    )
     p.add_argument("--iterations", type=int, help="override the preset's iteration count")
     p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor (default 1)")
     p.add_argument("--state", help="state to train (default: the first training state)")
-    p.add_argument("--single-state", action="store_true",
-                   help="train one field on one state of a capture with two training states")
-    p.add_argument("--holdout-every", type=int, default=8,
-                   help="hold out every n-th view of the state for evaluation (0: none; default 8)")
-    p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"),
-                   help="background colour (default: white for NeRF-Blender, black otherwise)")
+    p.add_argument(
+        "--single-state",
+        action="store_true",
+        help="train one field on one state of a capture with two training states",
+    )
+    p.add_argument(
+        "--holdout-every",
+        type=int,
+        default=8,
+        help="hold out every n-th view of the state for evaluation (0: none; default 8)",
+    )
+    p.add_argument(
+        "--background",
+        type=float,
+        nargs=3,
+        metavar=("R", "G", "B"),
+        help="background colour (default: white for NeRF-Blender, black otherwise)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--checkpoint", type=Path, help="checkpoint file (default: WORLD.ckpt)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
@@ -63,8 +81,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         preset = get_preset(args.preset, **({"iterations": args.iterations} if args.iterations else {}))
         config = TrainConfig(
-            preset=preset, seed=args.seed, downscale=args.downscale, state=args.state,
-            single_state=args.single_state, holdout_every=args.holdout_every,
+            preset=preset,
+            seed=args.seed,
+            downscale=args.downscale,
+            state=args.state,
+            single_state=args.single_state,
+            holdout_every=args.holdout_every,
             background=None if args.background is None else tuple(args.background),
         )
         t0 = time.perf_counter()
@@ -76,9 +98,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"dsg-train: resumed from {ckpt} at step {trainer.step}", file=sys.stderr)
         elif args.resume:
             print(f"dsg-train: no checkpoint at {ckpt}; starting from scratch", file=sys.stderr)
-        print(f"dsg-train: {len(data)} training views {data.width}x{data.height} of {data.state!r}, "
-              f"{data.num_classes - 1} objects, held out {list(data.heldout)}, {trainer.field.num} initial "
-              f"Gaussians, preset {preset.name} ({preset.iterations} iterations)", file=sys.stderr)
+        print(
+            f"dsg-train: {len(data)} training views {data.width}x{data.height} of {data.state!r}, "
+            f"{data.num_classes - 1} objects, held out {list(data.heldout)}, {trainer.field.num} initial "
+            f"Gaussians, preset {preset.name} ({preset.iterations} iterations)",
+            file=sys.stderr,
+        )
         trainer.train(progress=not args.quiet)
         trainer.write_world(args.out)
     except TrainingDiverged as e:
@@ -88,10 +113,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"dsg-train: error: {e}", file=sys.stderr)
         return 2
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    summary = {"world": str(args.out), "iterations": trainer.step, "gaussians": trainer.field.num,
-               "train_seconds": round(trainer.elapsed, 1), "wall_seconds": round(time.perf_counter() - t0, 1),
-               "peak_rss_mb": round(rss_mb, 1),
-               "last_train_psnr": trainer.history[-1]["psnr"] if trainer.history else None}
+    summary = {
+        "world": str(args.out),
+        "iterations": trainer.step,
+        "gaussians": trainer.field.num,
+        "train_seconds": round(trainer.elapsed, 1),
+        "wall_seconds": round(time.perf_counter() - t0, 1),
+        "peak_rss_mb": round(rss_mb, 1),
+        "last_train_psnr": trainer.history[-1]["psnr"] if trainer.history else None,
+    }
     print(json.dumps(summary))
     return 0
 

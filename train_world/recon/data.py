@@ -25,7 +25,7 @@ from PIL import Image
 
 from train_world.data import load_blender, load_capture
 
-__all__ = ["TrainData", "load_training_data", "load_eval_views", "resolve_source"]
+__all__ = ["TrainData", "load_eval_views", "load_training_data", "resolve_source"]
 
 
 @dataclass(frozen=True)
@@ -71,9 +71,7 @@ def resolve_source(path: str | Path) -> tuple[str, Path]:
         return "blender", p / "transforms_train.json"
     if p.is_file() and p.suffix == ".json" and p.name != "scene.json":
         return "blender", p
-    raise ValueError(
-        f"{p}: not a capture (no scene.json) nor NeRF-Blender data (no transforms_train.json)"
-    )
+    raise ValueError(f"{p}: not a capture (no scene.json) nor NeRF-Blender data (no transforms_train.json)")
 
 
 def blender_test_json(train_json: Path) -> Path | None:
@@ -117,10 +115,21 @@ def load_training_data(path: str | Path, config) -> TrainData:
         bg = config.background or (1.0, 1.0, 1.0)
         v = load_blender(p, background=bg, downscale=config.downscale)
         return TrainData(
-            images=v.images, viewmats=v.viewmats, Ks=v.Ks, width=v.width, height=v.height,
-            classes=None, depths=None, object_ids=(), object_names=(), background=tuple(bg),
-            units="unknown", state="train",
-            all_viewmats=v.viewmats.numpy(), all_Ks=v.Ks.numpy(), heldout=(),
+            images=v.images,
+            viewmats=v.viewmats,
+            Ks=v.Ks,
+            width=v.width,
+            height=v.height,
+            classes=None,
+            depths=None,
+            object_ids=(),
+            object_names=(),
+            background=tuple(bg),
+            units="unknown",
+            state="train",
+            all_viewmats=v.viewmats.numpy(),
+            all_Ks=v.Ks.numpy(),
+            heldout=(),
             poses={"train": np.zeros((0, 4, 4))},
             source={"kind": "blender", "path": str(p.resolve()), "downscale": config.downscale},
             silhouettes=_alphas(v.image_paths, config.downscale),
@@ -155,12 +164,23 @@ def load_training_data(path: str | Path, config) -> TrainData:
     if state not in poses:
         poses[state] = np.tile(np.eye(4), (len(ids), 1, 1))
     return TrainData(
-        images=v.images[tidx].contiguous(), viewmats=v.viewmats[tidx].contiguous(), Ks=v.Ks[tidx].contiguous(),
-        width=v.width, height=v.height, classes=classes,
+        images=v.images[tidx].contiguous(),
+        viewmats=v.viewmats[tidx].contiguous(),
+        Ks=v.Ks[tidx].contiguous(),
+        width=v.width,
+        height=v.height,
+        classes=classes,
         depths=None if v.depths is None else v.depths[tidx].contiguous(),
-        object_ids=ids, object_names=cap.object_names, background=tuple(bg), units=cap.units, state=state,
-        all_viewmats=v.viewmats.numpy(), all_Ks=v.Ks.numpy(), heldout=held, poses=poses,
-        source={"kind": "capture", "path": str(p.resolve()), "downscale": config.downscale},
+        object_ids=ids,
+        object_names=cap.object_names,
+        background=tuple(bg),
+        units=cap.units,
+        state=state,
+        all_viewmats=v.viewmats.numpy(),
+        all_Ks=v.Ks.numpy(),
+        heldout=held,
+        poses=poses,
+        source={"kind": "capture", "path": str(p.resolve()), "downscale": config.downscale, "name": cap.name},
         table_bounds=cap.table_bounds,
     )
 
@@ -179,8 +199,14 @@ class EvalViews:
 
 
 def load_eval_views(
-    path: str | Path, *, state: str | None, heldout: tuple[int, ...], downscale: int,
-    background: tuple[float, float, float], object_ids: tuple[int, ...], all_views: bool = False,
+    path: str | Path,
+    *,
+    state: str | None,
+    heldout: tuple[int, ...],
+    downscale: int,
+    background: tuple[float, float, float],
+    object_ids: tuple[int, ...],
+    all_views: bool = False,
 ) -> EvalViews:
     """Held-out views: the Blender test split, or the ``heldout`` views of ``state`` (all its views when
     ``all_views``, e.g. a test state)."""
@@ -188,11 +214,22 @@ def load_eval_views(
     if kind == "blender":
         tj = blender_test_json(p) if p.name == "transforms_train.json" else p
         if tj is None:
-            raise ValueError(f"{p.parent}: no transforms_test_subset.json or transforms_test.json to evaluate on")
+            raise ValueError(
+                f"{p.parent}: no transforms_test_subset.json or transforms_test.json to evaluate on"
+            )
         v = load_blender(tj, background=background, downscale=downscale)
         idx = tuple(range(len(v)))
-        return EvalViews(v.images, None, v.viewmats, v.Ks, v.width, v.height, "test", idx,
-                         tuple(q.stem for q in v.image_paths))
+        return EvalViews(
+            v.images,
+            None,
+            v.viewmats,
+            v.Ks,
+            v.width,
+            v.height,
+            "test",
+            idx,
+            tuple(q.stem for q in v.image_paths),
+        )
     cap = load_capture(p, states=[state], downscale=downscale, background=background, load_depth=False)
     v = cap.states[state]
     idx = tuple(range(len(v))) if all_views else tuple(heldout)
@@ -202,5 +239,14 @@ def load_eval_views(
     classes = None
     if v.masks is not None and object_ids:
         classes = torch.from_numpy(class_map(tuple(object_ids))[v.masks[t].numpy()])
-    return EvalViews(v.images[t], classes, v.viewmats[t], v.Ks[t], v.width, v.height, state, idx,
-                     tuple(f"{state}/{v.image_paths[i].stem}" for i in idx))
+    return EvalViews(
+        v.images[t],
+        classes,
+        v.viewmats[t],
+        v.Ks[t],
+        v.width,
+        v.height,
+        state,
+        idx,
+        tuple(f"{state}/{v.image_paths[i].stem}" for i in idx),
+    )

@@ -24,7 +24,7 @@ from dsg_gym.gaussians import GaussianSet
 from dsg_gym.geometry import quat_multiply, rotmat_to_quat
 from dsg_gym.splat import rasterize, spherical_harmonics
 
-__all__ = ["PARAM_NAMES", "RenderOutput", "SegmentedField", "Classifier", "rigid_transform_gaussians"]
+__all__ = ["PARAM_NAMES", "Classifier", "RenderOutput", "SegmentedField", "rigid_transform_gaussians"]
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "features")
 
@@ -82,7 +82,9 @@ class SegmentedField(nn.Module):
             if v.shape[0] != n:
                 raise ValueError(f"SegmentedField.{name}: {v.shape[0]} rows, means has {n}")
             if name in tails and tuple(v.shape[1:]) != tails[name]:
-                raise ValueError(f"SegmentedField.{name}: shape {tuple(v.shape)}, expected [N, {tails[name]}]")
+                raise ValueError(
+                    f"SegmentedField.{name}: shape {tuple(v.shape)}, expected [N, {tails[name]}]"
+                )
         if shN.dim() != 3 or shN.shape[2] != 3 or (shN.shape[1] + 1) not in (1, 4, 9, 16):
             raise ValueError(f"SegmentedField.shN: shape {tuple(shN.shape)} is not [N, (d+1)^2 - 1, 3]")
         for name, v in vals.items():
@@ -122,7 +124,7 @@ class SegmentedField(nn.Module):
 
     @property
     def max_sh_degree(self) -> int:
-        return int(round((self.shN.shape[1] + 1) ** 0.5)) - 1
+        return round((self.shN.shape[1] + 1) ** 0.5) - 1
 
     @property
     def num_features(self) -> int:

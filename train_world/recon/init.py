@@ -14,12 +14,12 @@ from .losses import knn_indices
 
 __all__ = [
     "camera_centres",
-    "scene_extent",
-    "scene_bounds_from_cameras",
+    "carve_silhouettes",
+    "initial_field",
     "points_from_depth",
     "points_in_bounds",
-    "initial_field",
-    "carve_silhouettes",
+    "scene_bounds_from_cameras",
+    "scene_extent",
 ]
 
 
@@ -105,7 +105,10 @@ def points_in_bounds(
 
 
 def carve_silhouettes(
-    points: np.ndarray, silhouettes: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
+    points: np.ndarray,
+    silhouettes: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
     min_fraction: float = 0.95,
 ) -> np.ndarray:
     """Boolean ``[P]``: points inside the visual hull, i.e. seen inside the silhouette (alpha > 0.5) in at

@@ -16,13 +16,13 @@ import torch
 import torch.nn.functional as F
 
 __all__ = [
-    "l1_loss",
-    "ssim",
-    "photometric_loss",
     "identity_loss",
-    "neighbour_kl_loss",
     "knn_indices",
+    "l1_loss",
+    "neighbour_kl_loss",
+    "photometric_loss",
     "psnr",
+    "ssim",
 ]
 
 

@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["LearningRates", "Preset", "PRESETS", "TrainConfig", "get_preset"]
+__all__ = ["PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset"]
 
 
 @dataclass(frozen=True)

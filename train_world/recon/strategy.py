@@ -24,7 +24,7 @@ from dsg_gym.geometry import quat_to_rotmat
 
 from .field import PARAM_NAMES, SegmentedField
 
-__all__ = ["StrategyConfig", "DensifyStrategy", "update_rows"]
+__all__ = ["DensifyStrategy", "StrategyConfig", "update_rows"]
 
 
 @dataclass(frozen=True)
@@ -143,7 +143,9 @@ class DensifyStrategy:
             return info
         self.accumulate(meta)
         if step >= cfg.densify_from and step % cfg.densify_every == 0:
-            info.update(self.densify_and_prune(field, optimizers, generator, after_reset=step > cfg.reset_every))
+            info.update(
+                self.densify_and_prune(field, optimizers, generator, after_reset=step > cfg.reset_every)
+            )
         if step % cfg.reset_every == 0 and step < cfg.densify_until:
             self.reset_opacity(field, optimizers, 2.0 * cfg.prune_opacity)
             info["reset"] = 1

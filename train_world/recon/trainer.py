@@ -24,15 +24,29 @@ from ..world_writer import build_world, write_world
 from .checkpoint import load_checkpoint, optimizer_from_tensors, optimizer_to_tensors, save_checkpoint
 from .data import TrainData
 from .field import PARAM_NAMES, Classifier, SegmentedField
-from .init import carve_silhouettes, initial_field, points_from_depth, points_in_bounds, scene_bounds_from_cameras, scene_extent
+from .init import (
+    carve_silhouettes,
+    initial_field,
+    points_from_depth,
+    points_in_bounds,
+    scene_bounds_from_cameras,
+    scene_extent,
+)
 from .losses import identity_loss, neighbour_kl_loss, photometric_loss, psnr
 from .presets import TrainConfig
 from .strategy import DensifyStrategy, StrategyConfig
 
 __all__ = ["Trainer", "TrainingDiverged", "make_optimizers", "means_lr"]
 
-_LR_KEY = {"means": "means", "quats": "quats", "log_scales": "scales", "opacity_logits": "opacities",
-           "sh0": "sh0", "shN": "shN", "features": "features"}
+_LR_KEY = {
+    "means": "means",
+    "quats": "quats",
+    "log_scales": "scales",
+    "opacity_logits": "opacities",
+    "sh0": "sh0",
+    "shN": "shN",
+    "features": "features",
+}
 
 
 class TrainingDiverged(RuntimeError):
@@ -80,8 +94,9 @@ class Trainer:
     def _initial_field(self) -> tuple[SegmentedField, Classifier]:
         d, p = self.data, self.preset
         if d.depths is not None and bool((d.depths > 0).any()):
-            pts, cols, ids = points_from_depth(d.images, d.depths, d.viewmats, d.Ks, d.classes,
-                                               p.num_init_points, self.rng)
+            pts, cols, ids = points_from_depth(
+                d.images, d.depths, d.viewmats, d.Ks, d.classes, p.num_init_points, self.rng
+            )
         else:
             bounds = scene_bounds_from_cameras(d.viewmats, d.Ks, d.width)
             if d.table_bounds is not None:  # tabletop: the table box up to its half-width in height
@@ -92,14 +107,29 @@ class Trainer:
                 pts, cols, ids = points_in_bounds(bounds, 8 * p.num_init_points, self.rng)
                 keep = carve_silhouettes(pts, d.silhouettes, d.viewmats, d.Ks)
                 if keep.sum() >= 100:
-                    pts, cols, ids = pts[keep][: p.num_init_points], cols[keep][: p.num_init_points], ids[keep][: p.num_init_points]
+                    pts, cols, ids = (
+                        pts[keep][: p.num_init_points],
+                        cols[keep][: p.num_init_points],
+                        ids[keep][: p.num_init_points],
+                    )
                 else:
-                    pts, cols, ids = pts[: p.num_init_points], cols[: p.num_init_points], ids[: p.num_init_points]
+                    pts, cols, ids = (
+                        pts[: p.num_init_points],
+                        cols[: p.num_init_points],
+                        ids[: p.num_init_points],
+                    )
             else:
                 pts, cols, ids = points_in_bounds(bounds, p.num_init_points, self.rng)
-        field, codes = initial_field(pts, cols, ids, num_classes=d.num_classes, sh_degree=p.sh_degree,
-                                     num_features=self.config.num_features, opacity=p.init_opacity,
-                                     generator=self.generator)
+        field, codes = initial_field(
+            pts,
+            cols,
+            ids,
+            num_classes=d.num_classes,
+            sh_degree=p.sh_degree,
+            num_features=self.config.num_features,
+            opacity=p.init_opacity,
+            generator=self.generator,
+        )
         classifier = Classifier(self.config.num_features, d.num_classes)
         with torch.no_grad():
             classifier.weight.copy_(5.0 * codes)
@@ -117,8 +147,15 @@ class Trainer:
         d, p = self.data, self.preset
         i = self._next_view()
         deg = min(self.step // p.sh_degree_every, self.field.max_sh_degree)
-        out = self.field.render(d.viewmats[i : i + 1], d.Ks[i : i + 1], d.width, d.height, sh_degree=deg,
-                                background=self.background, with_features=self.has_masks)
+        out = self.field.render(
+            d.viewmats[i : i + 1],
+            d.Ks[i : i + 1],
+            d.width,
+            d.height,
+            sh_degree=deg,
+            background=self.background,
+            with_features=self.has_masks,
+        )
         self.strategy.before_backward(out.meta)
         gt = d.images[i]
         loss = photometric_loss(out.rgb[0], gt, p.lambda_dssim)
@@ -129,13 +166,22 @@ class Trainer:
             loss = loss + p.lambda_identity * id_loss
             stats["id"] = float(id_loss.detach())
             if p.reg3d_weight > 0 and (self.step + 1) % p.reg3d_every == 0:
-                reg = neighbour_kl_loss(self.field.means, self.classifier(self.field.features), p.reg3d_k,
-                                        p.reg3d_samples, self.generator)
+                reg = neighbour_kl_loss(
+                    self.field.means,
+                    self.classifier(self.field.features),
+                    p.reg3d_k,
+                    p.reg3d_samples,
+                    self.generator,
+                )
                 loss = loss + p.reg3d_weight * reg
         stats["loss"] = float(loss.detach())
         if not math.isfinite(stats["loss"]):
-            where = (f"the last good checkpoint (step {self.last_checkpoint_step}) is kept at "
-                     f"{self.checkpoint_path}" if self.last_checkpoint_step is not None else "no checkpoint yet")
+            where = (
+                f"the last good checkpoint (step {self.last_checkpoint_step}) is kept at "
+                f"{self.checkpoint_path}"
+                if self.last_checkpoint_step is not None
+                else "no checkpoint yet"
+            )
             raise TrainingDiverged(f"loss became {stats['loss']} at step {self.step + 1}; {where}")
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)
@@ -157,8 +203,9 @@ class Trainer:
         end. ``stop_after``: stop after that many steps as if killed (no extra checkpoint; for tests)."""
         p = self.preset
         end = p.iterations if stop_after is None else min(p.iterations, stop_after)
-        bar = tqdm(total=p.iterations, initial=self.step, disable=not progress, desc="dsg-train",
-                   dynamic_ncols=True)
+        bar = tqdm(
+            total=p.iterations, initial=self.step, disable=not progress, desc="dsg-train", dynamic_ncols=True
+        )
         t0 = time.perf_counter()
         ema = None
         try:
@@ -167,10 +214,13 @@ class Trainer:
                 ema = s["psnr"] if ema is None or not math.isfinite(ema) else 0.9 * ema + 0.1 * s["psnr"]
                 if self.step % 10 == 0 or self.step == end:
                     bar.set_postfix(loss=f"{s['loss']:.4f}", psnr=f"{ema:.2f}", n=s["n"], refresh=False)
-                    self.history.append({"step": self.step, "loss": s["loss"], "psnr": s["psnr"], "n": s["n"]})
+                    self.history.append(
+                        {"step": self.step, "loss": s["loss"], "psnr": s["psnr"], "n": s["n"]}
+                    )
                 bar.update(1)
-                if self.checkpoint_path is not None and (self.step % p.checkpoint_every == 0
-                                                         or self.step == p.iterations):
+                if self.checkpoint_path is not None and (
+                    self.step % p.checkpoint_every == 0 or self.step == p.iterations
+                ):
                     self.elapsed += time.perf_counter() - t0
                     t0 = time.perf_counter()
                     self.save_checkpoint()
@@ -183,8 +233,10 @@ class Trainer:
         path = Path(path or self.checkpoint_path)
         for name, t in self.field.params().items():
             if not bool(torch.isfinite(t).all()):
-                raise TrainingDiverged(f"parameter {name} became non-finite at step {self.step}; "
-                                       f"the last good checkpoint (step {self.last_checkpoint_step}) is kept")
+                raise TrainingDiverged(
+                    f"parameter {name} became non-finite at step {self.step}; "
+                    f"the last good checkpoint (step {self.last_checkpoint_step}) is kept"
+                )
         tensors = {f"field/{k}": v.data for k, v in self.field.params().items()}
         for name, opt in self.optimizers.items():
             tensors.update(optimizer_to_tensors(f"adam/{name}", opt))
@@ -193,8 +245,13 @@ class Trainer:
         tensors.update({f"strategy/{k}": v for k, v in self.strategy.state_tensors().items()})
         tensors["rng/torch"] = self.generator.get_state()
         tensors["queue"] = self.queue
-        meta = {"step": self.step, "config": self.config.to_dict(), "elapsed": self.elapsed,
-                "numpy_rng": self.rng.bit_generator.state, "history": self.history[-200:]}
+        meta = {
+            "step": self.step,
+            "config": self.config.to_dict(),
+            "elapsed": self.elapsed,
+            "numpy_rng": self.rng.bit_generator.state,
+            "history": self.history[-200:],
+        }
         save_checkpoint(path, tensors, meta)
         self.last_checkpoint_step = self.step
 
@@ -203,10 +260,15 @@ class Trainer:
         tensors, meta = load_checkpoint(path)
         stored = TrainConfig.from_dict(meta["config"])
         if stored != self.config:
-            diff = {k: (v, self.config.to_dict()[k]) for k, v in stored.to_dict().items()
-                    if self.config.to_dict()[k] != v}
-            raise ValueError(f"{path}: checkpoint was made with a different configuration "
-                             f"(checkpoint vs now: {json.dumps(diff)[:400]}); use the same options to resume")
+            diff = {
+                k: (v, self.config.to_dict()[k])
+                for k, v in stored.to_dict().items()
+                if self.config.to_dict()[k] != v
+            }
+            raise ValueError(
+                f"{path}: checkpoint was made with a different configuration "
+                f"(checkpoint vs now: {json.dumps(diff)[:400]}); use the same options to resume"
+            )
         self.field = SegmentedField(*(tensors[f"field/{k}"] for k in PARAM_NAMES))
         self.optimizers = make_optimizers(self.field, self.preset.lrs, self.extent)
         for name, opt in self.optimizers.items():
@@ -217,7 +279,9 @@ class Trainer:
         self.cls_optimizer = torch.optim.Adam(self.classifier.parameters(), lr=self.preset.lrs.classifier)
         optimizer_from_tensors("adam/classifier", self.cls_optimizer, tensors)
         self.strategy = DensifyStrategy(self.strategy.config, self.field.num)
-        self.strategy.load_state_tensors({"grad2d": tensors["strategy/grad2d"], "count": tensors["strategy/count"]})
+        self.strategy.load_state_tensors(
+            {"grad2d": tensors["strategy/grad2d"], "count": tensors["strategy/count"]}
+        )
         self.generator.set_state(tensors["rng/torch"].clone())
         self.rng.bit_generator.state = meta["numpy_rng"]
         self.queue = tensors["queue"].clone()
@@ -246,11 +310,30 @@ class Trainer:
             "num_gaussians": self.field.num,
             **(extra_metadata or {}),
         }
+        if "name" in d.source:
+            meta["name"] = d.source["name"]
+        if d.table_bounds is not None:  # as in scene.json; the world runtime reads it
+            meta["table"] = {"bounds": np.asarray(d.table_bounds, dtype=np.float64).tolist()}
         return build_world(
-            self.field.to_gaussian_set(), classes, d.object_ids, d.object_names, d.poses, d.state,
-            {d.state: Cameras(np.asarray(d.all_viewmats, np.float32), np.asarray(d.all_Ks, np.float32),
-                              d.width, d.height)},
-            self.classifier.weight.detach().numpy(), self.classifier.bias.detach().numpy(), d.units, meta)
+            self.field.to_gaussian_set(),
+            classes,
+            d.object_ids,
+            d.object_names,
+            d.poses,
+            d.state,
+            {
+                d.state: Cameras(
+                    np.asarray(d.all_viewmats, np.float32),
+                    np.asarray(d.all_Ks, np.float32),
+                    d.width,
+                    d.height,
+                )
+            },
+            self.classifier.weight.detach().numpy(),
+            self.classifier.bias.detach().numpy(),
+            d.units,
+            meta,
+        )
 
     def write_world(self, path: str | Path, extra_metadata: dict[str, Any] | None = None) -> Path:
         return write_world(path, self.world(extra_metadata))

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .gaussians import GaussianSet
+from .poses import quat_to_rotmat, rotmat_to_quat
 from .splat import _numba_incremental as I
 from .splat import _numba_project as P
 from .splat import _numba_raster as R
@@ -71,27 +72,13 @@ def _as_pose_matrices(poses, k: int) -> np.ndarray:
     return poses
 
 
-def _rot_to_quat(Rm: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of an orthonormalised rotation matrix (float64)."""
+def _pose_rotation(Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit quaternion, its rotation matrix) of a pose's rotation block, orthonormalised (float64)."""
     u, _, vt = np.linalg.svd(Rm)
-    Rm = u @ vt
-    if np.linalg.det(Rm) < 0:
+    if np.linalg.det(u @ vt) < 0:
         raise ValueError("pose rotation has determinant < 0 (a reflection)")
-    tr = np.trace(Rm)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [0.25 * s, (Rm[2, 1] - Rm[1, 2]) / s, (Rm[0, 2] - Rm[2, 0]) / s, (Rm[1, 0] - Rm[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(Rm)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + Rm[i, i] - Rm[j, j] - Rm[k, k])
-        q = [0.0, 0.0, 0.0, 0.0]
-        q[0] = (Rm[k, j] - Rm[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (Rm[j, i] + Rm[i, j]) / s
-        q[1 + k] = (Rm[k, i] + Rm[i, k]) / s
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
+    q = rotmat_to_quat(u @ vt)
+    return q, quat_to_rotmat(q)
 
 
 class SceneRenderer:
@@ -192,9 +179,8 @@ class SceneRenderer:
                 continue
             if dirty is not None:
                 I.mark_tiles(st["proj"].rects[:, s:e], self.tiles_x, self.tiles_y, dirty)
-            Rm, t = poses[k, :3, :3], poses[k, :3, 3]
-            q = _rot_to_quat(Rm)
-            Rm = _quat_matrix(q)
+            t = poses[k, :3, 3]
+            q, Rm = _pose_rotation(poses[k, :3, :3])
             I.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
                               st["quats"][s:e])
             pr = _project(st["means"][s:e], st["quats"][s:e], self._obj_scales[s:e], self._obj_opac[s:e],
@@ -272,10 +258,3 @@ class SceneRenderer:
         return RenderOutput(rgb=st["rgb"].copy() if o_rgb >= 0 else None,
                             mask=st["mask"].copy() if o_mask >= 0 else None,
                             depth=st["depth"].copy() if o_depth >= 0 else None, alpha=st["alpha"].copy())
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])

@@ -100,8 +100,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"dsg-train: no checkpoint at {ckpt}; starting from scratch", file=sys.stderr)
         print(
             f"dsg-train: {len(data)} training views {data.width}x{data.height} of {data.state!r}, "
-            f"{data.num_classes - 1} objects, held out {list(data.heldout)}, {trainer.field.num} initial "
-            f"Gaussians, preset {preset.name} ({preset.iterations} iterations)",
+            f"{data.num_classes - 1} objects, held out {list(data.heldout)}, {trainer.field.num} "
+            f"Gaussians at step {trainer.step}, preset {preset.name} ({preset.iterations} iterations)",
             file=sys.stderr,
         )
         trainer.train(progress=not args.quiet)

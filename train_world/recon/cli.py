@@ -72,6 +72,13 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from train_world.dual.cli import wants_two_state
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if wants_two_state(argv):  # two training states: DSG-World's two-state training (train_world.dual)
+        from train_world.dual.cli import main as dual_main
+
+        return dual_main(argv)
     args = _parser().parse_args(argv)
     from .checkpoint import CheckpointError
     from .data import load_training_data

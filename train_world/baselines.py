@@ -1,0 +1,188 @@
+"""Single-state baselines for the DSG-World comparison (the paper's Table 1, segmentation rows).
+
+* **(a) segmentation only** (:func:`train_single_state`): one segmented field trained on ``state1``
+  (:class:`train_world.recon.trainer.Trainer`); its world moves the segmented object Gaussians to any
+  configuration and leaves the hole they covered on the table.
+* **(b) + kNN background completion** (:func:`knn_complete`): Gaussian Grouping's completion of the hole:
+  new flat Gaussians on a regular grid over each object's footprint at the reference state (on the table
+  plane), each taking colour, identity feature and opacity averaged over its ``k`` nearest background
+  Gaussians near the table plane outside the footprints.
+
+Both are world files, so ``dsg-eval WORLD CAPTURE --state test_0`` evaluates them like the DSG-World result.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from dsg_gym.gaussians import GaussianSet
+from dsg_gym.world import World, transform_gaussians
+
+__all__ = ["knn_complete", "reference_footprints", "train_single_state"]
+
+
+def train_single_state(
+    capture: str | Path,
+    out: str | Path,
+    *,
+    preset: str = "default",
+    iterations: int | None = None,
+    seed: int = 0,
+    state: str = "state1",
+    progress: bool = False,
+) -> dict:
+    """Baseline (a): train one field on ``state`` (schedule scaled to ``iterations`` as in the two-state
+    CLI) and write its world to ``out``; returns ``{"world", "train_seconds", "gaussians"}``."""
+    from train_world.dual.cli import scaled_preset
+    from train_world.recon.data import load_training_data
+    from train_world.recon.presets import TrainConfig
+    from train_world.recon.trainer import Trainer
+
+    cfg = TrainConfig(preset=scaled_preset(preset, iterations), seed=seed, state=state)
+    tr = Trainer(load_training_data(capture, cfg), cfg)
+    tr.train(progress=progress)
+    tr.write_world(out, {"baseline": "a: single-state segmentation"})
+    return {"world": str(out), "train_seconds": round(tr.elapsed, 1), "gaussians": tr.field.num}
+
+
+def reference_footprints(world: World, state: str | None = None):
+    """Table-plane footprints (:func:`train_world.dual.merge.object_footprints_xy`) of the world's objects
+    at ``state`` (default: its reference state)."""
+    from train_world.dual.merge import object_footprints_xy, robust_object_points
+
+    state = state or world.metadata.get("reference_state")
+    poses = world.poses[state]
+    pts = []
+    for row, oid in enumerate(world.object_ids):
+        g = world.objects[oid].gaussians
+        keep = g.opacities > 0.1
+        placed = transform_gaussians(g.subset(np.nonzero(keep)[0]), poses[row]).means
+        pts.append(robust_object_points(placed))
+    return object_footprints_xy(pts)
+
+
+def knn_complete(
+    world: World,
+    *,
+    k: int = 8,
+    spacing: float | None = None,
+    margin: float = 0.01,
+    band: float = 0.01,
+) -> World:
+    """Baseline (b): ``world`` with its reference-state object footprints filled (module docstring).
+
+    ``spacing``: grid step (default: from the background Gaussians near the table, 2 x their median largest
+    scale, clipped to [2 mm, 2 cm]); ``margin``: footprint dilation; ``band``: how far from the table plane
+    (``metadata.table.bounds`` z, else the median height of the background near the footprints) a
+    background Gaussian may be to act as a source.
+    """
+    from scipy.spatial import cKDTree
+
+    from train_world.dual.merge import footprint_contains
+
+    bg = world.background
+    fps = [f for f in reference_footprints(world) if f is not None]
+    if not fps or bg.num == 0:
+        return world
+    table = world.metadata.get("table", {}).get("bounds")
+    xy = bg.means[:, :2].astype(np.float64)
+    near_fp = footprint_contains(fps, xy, margin + 0.05)
+    z0 = float(table[0][2]) if table else float(np.median(bg.means[near_fp, 2]) if near_fp.any() else 0.0)
+    inside = footprint_contains(fps, xy, margin)
+    src = (np.abs(bg.means[:, 2] - z0) < band) & ~inside & (bg.opacities > 0.05)
+    if src.sum() < k:
+        return world
+    if spacing is None:
+        ref_scale = np.median(bg.scales[src & near_fp].max(-1)) if (src & near_fp).any() else 0.0025
+        spacing = float(np.clip(2.0 * ref_scale, 0.002, 0.02))
+    # grid over the bounding box of the objects' Gaussians at the reference poses, kept inside a footprint
+    ref = world.poses[world.metadata.get("reference_state") or next(iter(world.poses))]
+    obj_xy = np.concatenate(
+        [
+            transform_gaussians(world.objects[oid].gaussians, ref[row]).means[:, :2]
+            for row, oid in enumerate(world.object_ids)
+        ]
+    )
+    lo = obj_xy.min(0) - margin
+    hi = obj_xy.max(0) + margin
+    gx = np.arange(lo[0], hi[0] + spacing, spacing)
+    gy = np.arange(lo[1], hi[1] + spacing, spacing)
+    grid = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
+    grid = grid[footprint_contains(fps, grid, margin)]
+    if len(grid) == 0:
+        return world
+    sidx = np.nonzero(src)[0]
+    _, nn = cKDTree(xy[sidx]).query(grid, k=k)
+    nn = sidx[np.asarray(nn).reshape(len(grid), k)]
+    n = len(grid)
+    means = np.concatenate([grid, np.full((n, 1), z0)], 1).astype(np.float32)
+    quats = np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1))
+    scales = np.tile(np.array([0.75 * spacing, 0.75 * spacing, 0.15 * spacing], np.float32), (n, 1))
+    new = GaussianSet(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=np.clip(bg.opacities[nn].mean(1), 0.05, 0.99).astype(np.float32),
+        sh=bg.sh[nn].mean(1).astype(np.float32),
+        features=bg.features[nn].mean(1).astype(np.float32),
+        labels=np.zeros(n, np.int32),
+    )
+    meta = {
+        **dict(world.metadata),
+        "baseline": "b: single-state + kNN completion",
+        "knn_completion": {"added": n, "k": k, "spacing": spacing},
+    }
+    return dataclasses.replace(
+        world, background=GaussianSet.concat([bg.without_encodings(), new]), metadata=meta
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m train_world.baselines single CAPTURE --out W`` (a) / ``knn WORLD --out W`` (b)."""
+    import argparse
+    import json
+    import resource
+    import sys
+    import time
+
+    from train_world.world_writer import write_world
+
+    p = argparse.ArgumentParser(prog="python -m train_world.baselines", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    a = sub.add_parser("single", help="baseline (a): train one field on state1")
+    a.add_argument("capture", type=Path)
+    a.add_argument("--out", type=Path, required=True)
+    a.add_argument("--preset", default="default")
+    a.add_argument("--iterations", type=int)
+    a.add_argument("--seed", type=int, default=0)
+    b = sub.add_parser("knn", help="baseline (b): kNN background completion of a single-state world")
+    b.add_argument("world", type=Path)
+    b.add_argument("--out", type=Path, required=True)
+    b.add_argument("--k", type=int, default=8)
+    args = p.parse_args(argv)
+    t0 = time.perf_counter()
+    try:
+        if args.cmd == "single":
+            info = train_single_state(
+                args.capture, args.out, preset=args.preset, iterations=args.iterations, seed=args.seed
+            )
+        else:
+            from dsg_gym.world import load_world
+
+            w = knn_complete(load_world(args.world), k=args.k)
+            write_world(args.out, w)
+            info = {"world": str(args.out), **w.metadata.get("knn_completion", {})}
+    except (ValueError, FileNotFoundError) as e:
+        print(f"baselines: error: {e}", file=sys.stderr)
+        return 2
+    info["wall_seconds"] = round(time.perf_counter() - t0, 1)
+    info["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    print(json.dumps(info))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,190 @@
+"""``dsg-train`` on a capture with two training states: DSG-World's two-state training (``DualTrainer``).
+
+``train_world.recon.cli`` hands captures with ``state1`` and ``state2`` to :func:`main` unless
+``--single-state`` (or ``--state``) is given; ``python -m train_world.dual.cli`` runs it directly.
+
+Examples::
+
+    dsg-train data/two_blocks --out worlds/two_blocks.dsgw                         # B+C+P, default preset
+    dsg-train data/two_blocks --out /tmp/b.dsgw --no-prune --no-pseudo             # ablation B
+    dsg-train data/tiny --out /tmp/tiny.dsgw --preset quick --iterations 200       # schedule scaled to 200
+    dsg-train data/two_blocks --out worlds/two_blocks.dsgw --resume                # continue a killed run
+
+``--iterations N`` scales the preset's whole schedule (densification window, opacity resets, SH degree steps,
+checkpoint interval) to ``N`` steps. Each step trains both fields; the first ``--joint-from`` fraction is
+reconstruction only. Checkpoints go to ``WORLD.ckpt`` (override with ``--checkpoint``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+from train_world.recon.presets import PRESETS, Preset, TrainConfig, get_preset
+
+__all__ = ["has_two_training_states", "main", "scaled_preset", "wants_two_state"]
+
+_SCHEDULE = (
+    "densify_from",
+    "densify_until",
+    "densify_every",
+    "reset_every",
+    "sh_degree_every",
+    "checkpoint_every",
+)
+
+
+def scaled_preset(name: str, iterations: int | None = None) -> Preset:
+    """Preset ``name``; with ``iterations``, every schedule step count scaled by ``iterations / preset's``
+    (so an opacity reset never lands at the end of a shortened run)."""
+    p = get_preset(name)
+    if iterations is None or iterations == p.iterations:
+        return p
+    f = iterations / p.iterations
+    return dataclasses.replace(
+        p,
+        iterations=int(iterations),
+        **{k: max(1, round(getattr(p, k) * f)) for k in _SCHEDULE},
+    )
+
+
+def has_two_training_states(path: str | Path) -> bool:
+    """True for a capture folder whose ``scene.json`` lists ``state1`` and ``state2`` as training states."""
+    p = Path(path)
+    if not (p.is_dir() and (p / "scene.json").is_file()):
+        return False
+    try:
+        from train_world.data import load_capture
+
+        cap = load_capture(p, states=[], load_depth=False)
+    except ValueError:  # CaptureError: not a readable capture
+        return False
+    return all(cap.splits.get(s) == "train" for s in ("state1", "state2"))
+
+
+def wants_two_state(argv: list[str]) -> bool:
+    """The single-state ``dsg-train`` command line ``argv`` names a capture with two training states and
+    neither ``--single-state`` nor ``--state`` (nor help): hand it to :func:`main`."""
+    if any(
+        a in ("--single-state", "-h", "--help") or a == "--state" or a.startswith("--state=") for a in argv
+    ):
+        return False
+    return any(not a.startswith("-") and has_two_training_states(a) for a in argv)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="dsg-train",
+        description="DSG-World two-state training: two segmented Gaussian fields with a shared classifier, "
+        "bidirectional alignment (B), co-pruning (C), pseudo-state alignment (P); writes the merged world.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("Examples::", 1)[1],
+    )
+    p.add_argument("capture", type=Path, help="capture folder with state1 and state2 (scene.json)")
+    p.add_argument("--out", type=Path, required=True, help="world file to write")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="default", help="default: default")
+    p.add_argument("--iterations", type=int, help="steps (both fields per step); scales the schedule")
+    p.add_argument("--downscale", type=int, default=1)
+    p.add_argument("--holdout-every", type=int, default=8, help="hold out every n-th view of each state")
+    p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--joint-from", type=float, default=0.5, help="reconstruction-only fraction (default 0.5)")
+    p.add_argument("--lambda-align", type=float, default=1.0)
+    p.add_argument("--lambda-pseudo", type=float, default=1.0)
+    p.add_argument("--no-align", action="store_true", help="switch off bidirectional alignment (B)")
+    p.add_argument("--no-prune", action="store_true", help="switch off co-pruning (C)")
+    p.add_argument("--no-pseudo", action="store_true", help="switch off pseudo-state alignment (P)")
+    p.add_argument(
+        "--tau", type=float, default=0.02, help="co-pruning distance, scene units (default 0.02 m)"
+    )
+    p.add_argument("--prune-every", type=int, default=500, help="co-pruning interval in joint steps")
+    p.add_argument("--pseudo-every", type=int, default=1, help="pseudo-state loss every n-th joint step")
+    p.add_argument("--checkpoint", type=Path, help="checkpoint file (default: WORLD.ckpt)")
+    p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def config_from_args(args: argparse.Namespace):
+    from .trainer import DualConfig
+
+    base = TrainConfig(
+        preset=scaled_preset(args.preset, args.iterations),
+        seed=args.seed,
+        downscale=args.downscale,
+        holdout_every=args.holdout_every,
+        background=None if args.background is None else tuple(args.background),
+    )
+    return DualConfig(
+        base=base,
+        joint_from=args.joint_from,
+        lambda_align=args.lambda_align,
+        lambda_pseudo=args.lambda_pseudo,
+        use_align=not args.no_align,
+        use_prune=not args.no_prune,
+        use_pseudo=not args.no_pseudo,
+        tau=args.tau,
+        prune_every=args.prune_every,
+        pseudo_every=args.pseudo_every,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    from train_world.recon.checkpoint import CheckpointError
+    from train_world.recon.trainer import TrainingDiverged
+
+    from .trainer import DualTrainer
+
+    ckpt = args.checkpoint or args.out.with_name(args.out.name + ".ckpt")
+    t0 = time.perf_counter()
+    try:
+        config = config_from_args(args)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        trainer = DualTrainer(args.capture, config, checkpoint=ckpt)
+        if args.resume and ckpt.exists():
+            trainer.load_checkpoint()
+            print(f"dsg-train: resumed from {ckpt} at step {trainer.step}", file=sys.stderr)
+        print(
+            f"dsg-train: two states {config.states}, {len(trainer.data1)}+{len(trainer.data2)} training views "
+            f"{trainer.data1.width}x{trainer.data1.height}, {trainer.data1.num_classes - 1} objects, ablation "
+            f"{config.ablation}, tau {config.tau} {trainer.data1.units}, preset {config.base.preset.name} "
+            f"({config.base.preset.iterations} steps, joint from {trainer.joint_start})",
+            file=sys.stderr,
+        )
+        trainer.train(progress=not args.quiet)
+        world = trainer.world()
+        from train_world.world_writer import write_world
+
+        write_world(args.out, world)
+    except TrainingDiverged as e:
+        print(f"dsg-train: error: training diverged: {e}", file=sys.stderr)
+        return 3
+    except (ValueError, CheckpointError, FileNotFoundError) as e:
+        print(f"dsg-train: error: {e}", file=sys.stderr)
+        return 2
+    dual = world.metadata["dual"]
+    summary = {
+        "world": str(args.out),
+        "ablation": config.ablation,
+        "iterations": trainer.step,
+        "gaussians": int(world.metadata["num_gaussians"]),
+        "field_sizes": dual["field_sizes"],
+        "object_sources": dual["object_sources"],
+        "background_from_2": dual["background_from_2"],
+        "train_seconds": round(trainer.elapsed, 1),
+        "wall_seconds": round(time.perf_counter() - t0, 1),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "last_train_psnr": trainer.history[-1]["psnr"] if trainer.history else None,
+    }
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,423 @@
+"""``DualTrainer``: DSG-World's joint optimisation of two segmented fields with one shared classifier.
+
+Per step both fields take one view of their own state (Gaussian Grouping's ``L_r`` each, as in
+:mod:`train_world.recon`). The first ``joint_from`` fraction of the steps is reconstruction only; then
+
+``L = L_r(G1) + L_r(G2) + lambda_a L_align + lambda_p L_pseudo``
+
+with ``L_align`` = ``T_1->2(G1)`` rendered at this step's state-2 view against its image and mask plus
+``T_2->1(G2)`` at the state-1 view against state 1 (B), and ``L_pseudo`` = both fields moved to a sampled
+collision-free configuration and rendered from one training camera (P; every ``pseudo_every``-th joint
+step, 1 = every step as in the paper). Co-pruning (C) runs every
+``prune_every`` joint steps and once at the end. Each field keeps its own Adam optimisers and 3DGS
+densification (:class:`~train_world.recon.strategy.DensifyStrategy`, driven by its reconstruction render);
+the classifier has one Adam. Object labels (for the transfer) are the classifier's argmax on each Gaussian's
+identity feature, recomputed every step. The merged world is built by :mod:`.world`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from train_world.recon.checkpoint import (
+    load_checkpoint,
+    optimizer_from_tensors,
+    optimizer_to_tensors,
+    save_checkpoint,
+)
+from train_world.recon.data import TrainData, load_training_data
+from train_world.recon.field import PARAM_NAMES, SegmentedField
+from train_world.recon.losses import identity_loss, neighbour_kl_loss, photometric_loss, psnr
+from train_world.recon.presets import TrainConfig
+from train_world.recon.trainer import Trainer, TrainingDiverged, make_optimizers, means_lr
+
+from .losses import align_loss, pseudo_loss
+from .merge import co_prune_masks, footprint_contains, object_footprints_xy, robust_object_points
+from .pseudo import footprint_radii, sample_pseudo_state
+from .transfer import ObjectTransfer, gaussian_transforms, object_labels, relative_transforms
+
+__all__ = ["DualConfig", "DualTrainer"]
+
+
+@dataclass(frozen=True)
+class DualConfig:
+    """Two-state training options. ``base``: the reconstruction configuration (preset, seed, ...; its
+    ``state`` is ignored). ``joint_from``: fraction of the iterations that is reconstruction only (paper:
+    0.5). ``use_align``/``use_prune``/``use_pseudo``: B, C, P of the ablation. ``tau``: co-pruning distance
+    in scene units (metres for synthetic captures: 0.02 = 2 cm, about a quarter of the smallest default
+    object). ``footprint_margin``: dilation of object footprints for co-pasting/co-pruning (scene units)."""
+
+    base: TrainConfig
+    states: tuple[str, str] = ("state1", "state2")
+    joint_from: float = 0.5
+    lambda_align: float = 1.0
+    lambda_pseudo: float = 1.0
+    use_align: bool = True
+    use_prune: bool = True
+    use_pseudo: bool = True
+    tau: float = 0.02
+    prune_every: int = 500
+    pseudo_every: int = 1
+    pseudo_margin: float = 0.005
+    footprint_margin: float = 0.01
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.joint_from <= 1.0:
+            raise ValueError(f"joint_from must be in [0, 1], got {self.joint_from}")
+        if self.tau <= 0:
+            raise ValueError(f"tau must be > 0 (scene units), got {self.tau}")
+        if self.prune_every < 1 or self.pseudo_every < 1:
+            raise ValueError("prune_every and pseudo_every must be >= 1")
+        if len(self.states) != 2 or self.states[0] == self.states[1]:
+            raise ValueError(f"states must be two different names, got {self.states}")
+
+    @property
+    def ablation(self) -> str:
+        return (
+            "+".join(n for n, on in zip("BCP", (self.use_align, self.use_prune, self.use_pseudo)) if on)
+            or "-"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["base"] = self.base.to_dict()
+        d["states"] = list(self.states)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> DualConfig:
+        d = dict(d)
+        d["base"] = TrainConfig.from_dict(d["base"])
+        d["states"] = tuple(d["states"])
+        return cls(**d)
+
+
+class DualTrainer:
+    """Trains G1 (``states[0]``) and G2 (``states[1]``) of ``capture`` jointly; see the module docstring."""
+
+    def __init__(self, capture: str | Path, config: DualConfig, checkpoint: str | Path | None = None):
+        self.capture = Path(capture)
+        self.config = config
+        self.preset = config.base.preset
+        self.checkpoint_path = None if checkpoint is None else Path(checkpoint)
+        s1, s2 = config.states
+        self.data1 = load_training_data(capture, dataclasses.replace(config.base, state=s1))
+        self.data2 = load_training_data(capture, dataclasses.replace(config.base, state=s2))
+        if self.data1.object_ids != self.data2.object_ids:
+            raise ValueError(f"{capture}: states {s1} and {s2} list different objects")
+        if s2 not in self.data1.poses or s1 not in self.data1.poses:
+            raise ValueError(f"{capture}: no object poses for {s1} and {s2}")
+        # the per-state Trainers hold each field with its optimisers and densification strategy; both draw
+        # the same class codes from the same seed, so they start with the same classifier, which is shared
+        self.t1 = Trainer(self.data1, dataclasses.replace(config.base, state=s1))
+        self.t2 = Trainer(self.data2, dataclasses.replace(config.base, state=s2))
+        if not torch.equal(self.t1.classifier.weight, self.t2.classifier.weight):
+            raise RuntimeError("the two fields' initial classifiers differ (class codes not shared)")
+        self.classifier = self.t1.classifier
+        self.t2.classifier = self.classifier
+        self.cls_optimizer = torch.optim.Adam(self.classifier.parameters(), lr=self.preset.lrs.classifier)
+        self.has_masks = self.t1.has_masks and self.t2.has_masks
+        self.poses = {s: np.asarray(P, dtype=np.float64) for s, P in self.data1.poses.items()}
+        self.P1, self.P2 = self.poses[s1], self.poses[s2]
+        self.T12 = relative_transforms(self.P1, self.P2)
+        self.T21 = relative_transforms(self.P2, self.P1)
+        self.table_bounds = self.data1.table_bounds
+        self.rng = np.random.default_rng(config.base.seed + 7919)
+        self.generator = torch.Generator().manual_seed(config.base.seed + 7919)
+        self.step = 0
+        self.elapsed = 0.0
+        self.history: list[dict[str, float]] = []
+        self.prune_log: list[dict[str, int]] = []
+        self.last_checkpoint_step: int | None = None
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def joint_start(self) -> int:
+        return round(self.config.joint_from * self.preset.iterations)
+
+    @property
+    def fields(self) -> tuple[SegmentedField, SegmentedField]:
+        return self.t1.field, self.t2.field
+
+    def labels(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return object_labels(self.t1.field.features, self.classifier), object_labels(
+            self.t2.field.features, self.classifier
+        )
+
+    def _recon_loss(self, t: Trainer, i: int, deg: int) -> tuple[torch.Tensor, Any, float]:
+        d, p = t.data, self.preset
+        out = t.field.render(
+            d.viewmats[i : i + 1],
+            d.Ks[i : i + 1],
+            d.width,
+            d.height,
+            sh_degree=deg,
+            background=t.background,
+            with_features=self.has_masks,
+        )
+        t.strategy.before_backward(out.meta)
+        loss = photometric_loss(out.rgb[0], d.images[i], p.lambda_dssim)
+        if self.has_masks:
+            loss = loss + p.lambda_identity * identity_loss(self.classifier(out.features[0]), d.classes[i])
+            if p.reg3d_weight > 0 and (self.step + 1) % p.reg3d_every == 0:
+                reg = neighbour_kl_loss(
+                    t.field.means, self.classifier(t.field.features), p.reg3d_k, p.reg3d_samples, t.generator
+                )
+                loss = loss + p.reg3d_weight * reg
+        return loss, out.meta, psnr(out.rgb[0].clamp(0, 1), d.images[i])
+
+    def _render_moved(self, t: Trainer, transform, d: TrainData, i: int, deg: int):
+        return t.field.render(
+            d.viewmats[i : i + 1],
+            d.Ks[i : i + 1],
+            d.width,
+            d.height,
+            transform=transform,
+            sh_degree=deg,
+            background=t.background,
+            with_features=self.has_masks,
+        )
+
+    def object_points(
+        self, field: SegmentedField, labels: torch.Tensor, poses: np.ndarray
+    ) -> list[np.ndarray]:
+        """Each object's Gaussian centres (opacity > 0.1, outliers dropped) in the object's own frame."""
+        means = field.means.detach().double().numpy()
+        opaque = (field.opacities().detach() > 0.1).numpy()
+        lab = labels.numpy()
+        out = []
+        for k in range(len(poses)):
+            pts = robust_object_points(means[(lab == k + 1) & opaque])
+            inv = np.linalg.inv(poses[k])
+            out.append(pts @ inv[:3, :3].T + inv[:3, 3])
+        return out
+
+    def footprints(self, poses: np.ndarray) -> list[np.ndarray | None]:
+        """Object footprints at ``poses`` from both fields' object Gaussians (object frame, then placed)."""
+        l1, l2 = self.labels()
+        a = self.object_points(self.t1.field, l1, self.P1)
+        b = self.object_points(self.t2.field, l2, self.P2)
+        placed = []
+        for k in range(len(poses)):
+            pts = np.concatenate([a[k], b[k]])
+            placed.append(pts @ poses[k][:3, :3].T + poses[k][:3, 3])
+        return object_footprints_xy(placed)
+
+    # ------------------------------------------------------------------ co-pruning
+    @torch.no_grad()
+    def co_prune(self) -> dict[str, int]:
+        """Collaborative co-pruning of both fields (:func:`.merge.co_prune_masks`); returns the counts."""
+        f1, f2 = self.fields
+        l1, l2 = self.labels()
+        m1 = f1.means.detach()
+        m2 = f2.means.detach()
+        m1_in_2 = (
+            torch.einsum("nij,nj->ni", gaussian_transforms(l1, self.T12)[:, :3, :3], m1)
+            + gaussian_transforms(l1, self.T12)[:, :3, 3]
+        )
+        m2_in_1 = (
+            torch.einsum("nij,nj->ni", gaussian_transforms(l2, self.T21)[:, :3, :3], m2)
+            + gaussian_transforms(l2, self.T21)[:, :3, 3]
+        )
+        fp1, fp2 = self.footprints(self.P1), self.footprints(self.P2)
+        p1, p2 = co_prune_masks(
+            m1_in_2.numpy(),
+            m2.numpy(),
+            m2_in_1.numpy(),
+            m1.numpy(),
+            self.config.tau,
+            background_1=(l1 == 0).numpy(),
+            background_2=(l2 == 0).numpy(),
+            footprints_1=fp1,
+            footprints_2=fp2,
+            table_bounds=self.table_bounds,
+            footprint_margin=self.config.footprint_margin,
+        )
+        info = {"step": self.step, "pruned_1": int(p1.sum()), "pruned_2": int(p2.sum())}
+        for t, p in ((self.t1, p1), (self.t2, p2)):
+            if p.any() and p.sum() < len(p):
+                t.strategy.prune(t.field, t.optimizers, torch.from_numpy(p))
+        self.prune_log.append(info)
+        return info
+
+    # ------------------------------------------------------------------ one step
+    def train_step(self) -> dict[str, float]:
+        cfg, p = self.config, self.preset
+        t1, t2 = self.t1, self.t2
+        i1, i2 = t1._next_view(), t2._next_view()
+        deg = min(self.step // p.sh_degree_every, t1.field.max_sh_degree)
+        l_r1, meta1, psnr1 = self._recon_loss(t1, i1, deg)
+        l_r2, meta2, psnr2 = self._recon_loss(t2, i2, deg)
+        loss = l_r1 + l_r2
+        stats = {"psnr": 0.5 * (psnr1 + psnr2)}
+        joint = self.step >= self.joint_start
+        if joint and (cfg.use_align or cfg.use_pseudo):
+            lab1, lab2 = self.labels()
+        if joint and cfg.use_align:
+            o12 = self._render_moved(t1, ObjectTransfer(lab1, self.T12), self.data2, i2, deg)
+            o21 = self._render_moved(t2, ObjectTransfer(lab2, self.T21), self.data1, i1, deg)
+            c2 = self.data2.classes[i2] if self.has_masks else None
+            c1 = self.data1.classes[i1] if self.has_masks else None
+            f12 = o12.features[0] if self.has_masks else None
+            f21 = o21.features[0] if self.has_masks else None
+            l_a = align_loss(o12.rgb[0], f12, self.data2.images[i2], c2, self.classifier) + align_loss(
+                o21.rgb[0], f21, self.data1.images[i1], c1, self.classifier
+            )
+            loss = loss + cfg.lambda_align * l_a
+            stats["align"] = float(l_a.detach())
+        do_pseudo = (self.step - self.joint_start) % cfg.pseudo_every == 0
+        if joint and cfg.use_pseudo and do_pseudo and self.table_bounds is not None and len(self.P1):
+            radii = footprint_radii(self.object_points(t1.field, lab1, self.P1), pad=0.005)
+            Pp = sample_pseudo_state(self.P1, radii, self.table_bounds, self.rng, margin=cfg.pseudo_margin)
+            d = self.data1 if self.rng.random() < 0.5 else self.data2
+            v = int(self.rng.integers(len(d)))
+            oa = self._render_moved(t1, ObjectTransfer(lab1, relative_transforms(self.P1, Pp)), d, v, deg)
+            ob = self._render_moved(t2, ObjectTransfer(lab2, relative_transforms(self.P2, Pp)), d, v, deg)
+            fa = oa.features[0] if self.has_masks else None
+            fb = ob.features[0] if self.has_masks else None
+            l_p = pseudo_loss(oa.rgb[0], fa, ob.rgb[0], fb, self.classifier)
+            loss = loss + cfg.lambda_pseudo * l_p
+            stats["pseudo"] = float(l_p.detach())
+        stats["loss"] = float(loss.detach())
+        if not math.isfinite(stats["loss"]):
+            raise TrainingDiverged(f"loss became {stats['loss']} at step {self.step + 1}")
+        opts = [*t1.optimizers.values(), *t2.optimizers.values(), self.cls_optimizer]
+        for opt in opts:
+            opt.zero_grad(set_to_none=True)
+        loss.backward()
+        for t in (t1, t2):
+            t.optimizers["means"].param_groups[0]["lr"] = means_lr(self.step, p.iterations, p.lrs, t.extent)
+        for opt in opts[:-1]:
+            opt.step()
+        if self.has_masks:
+            self.cls_optimizer.step()
+        self.step += 1
+        t1.strategy.after_backward(self.step, t1.field, t1.optimizers, meta1, t1.generator)
+        t2.strategy.after_backward(self.step, t2.field, t2.optimizers, meta2, t2.generator)
+        if cfg.use_prune and joint and (self.step - self.joint_start) % cfg.prune_every == 0:
+            self.co_prune()
+        t1.step = t2.step = self.step
+        stats["n"] = t1.field.num + t2.field.num
+        return stats
+
+    # ------------------------------------------------------------------ loop
+    def train(self, *, progress: bool = True, stop_after: int | None = None) -> None:
+        p = self.preset
+        end = p.iterations if stop_after is None else min(p.iterations, stop_after)
+        bar = tqdm(
+            total=p.iterations,
+            initial=self.step,
+            disable=not progress,
+            desc="dsg-train dual",
+            dynamic_ncols=True,
+        )
+        t0 = time.perf_counter()
+        try:
+            while self.step < end:
+                s = self.train_step()
+                if self.step % 10 == 0 or self.step == end:
+                    bar.set_postfix(loss=f"{s['loss']:.4f}", psnr=f"{s['psnr']:.2f}", n=s["n"], refresh=False)
+                    self.history.append({"step": self.step, **{k: float(v) for k, v in s.items()}})
+                bar.update(1)
+                if self.step == p.iterations and self.config.use_prune and self.step > self.joint_start:
+                    self.co_prune()  # the final co-pruning before merging
+                if self.checkpoint_path is not None and (
+                    self.step % p.checkpoint_every == 0 or self.step == p.iterations
+                ):
+                    self.elapsed += time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    self.save_checkpoint()
+        finally:
+            bar.close()
+            self.elapsed += time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ checkpoints
+    def save_checkpoint(self, path: str | Path | None = None) -> None:
+        tensors: dict[str, torch.Tensor] = {}
+        for tag, t in (("g1", self.t1), ("g2", self.t2)):
+            for k, v in t.field.params().items():
+                if not bool(torch.isfinite(v).all()):
+                    raise TrainingDiverged(f"{tag}.{k} became non-finite at step {self.step}")
+                tensors[f"{tag}/field/{k}"] = v.data
+            for name, opt in t.optimizers.items():
+                tensors.update(optimizer_to_tensors(f"{tag}/adam/{name}", opt))
+            tensors.update({f"{tag}/strategy/{k}": v for k, v in t.strategy.state_tensors().items()})
+            tensors[f"{tag}/rng/torch"] = t.generator.get_state()
+            tensors[f"{tag}/queue"] = t.queue
+        tensors.update({f"classifier/{k}": v.data for k, v in self.classifier.named_parameters()})
+        tensors.update(optimizer_to_tensors("adam/classifier", self.cls_optimizer))
+        tensors["rng/torch"] = self.generator.get_state()
+        meta = {
+            "kind": "dual",
+            "step": self.step,
+            "dual_config": self.config.to_dict(),
+            "elapsed": self.elapsed,
+            "numpy_rng": self.rng.bit_generator.state,
+            "numpy_rng_fields": [self.t1.rng.bit_generator.state, self.t2.rng.bit_generator.state],
+            "history": self.history[-200:],
+            "prune_log": self.prune_log,
+        }
+        save_checkpoint(Path(path or self.checkpoint_path), tensors, meta)
+        self.last_checkpoint_step = self.step
+
+    def load_checkpoint(self, path: str | Path | None = None) -> None:
+        path = Path(path or self.checkpoint_path)
+        tensors, meta = load_checkpoint(path)
+        if meta.get("kind") != "dual":
+            raise ValueError(f"{path}: not a two-state (dual) checkpoint")
+        if DualConfig.from_dict(meta["dual_config"]) != self.config:
+            raise ValueError(
+                f"{path}: checkpoint was made with different options; use the same options to resume"
+            )
+        for tag, t, st in (
+            ("g1", self.t1, meta["numpy_rng_fields"][0]),
+            ("g2", self.t2, meta["numpy_rng_fields"][1]),
+        ):
+            t.field = SegmentedField(*(tensors[f"{tag}/field/{k}"] for k in PARAM_NAMES))
+            t.optimizers = make_optimizers(t.field, self.preset.lrs, t.extent)
+            for name, opt in t.optimizers.items():
+                optimizer_from_tensors(f"{tag}/adam/{name}", opt, tensors)
+            t.strategy.load_state_tensors(
+                {"grad2d": tensors[f"{tag}/strategy/grad2d"], "count": tensors[f"{tag}/strategy/count"]}
+            )
+            t.generator.set_state(tensors[f"{tag}/rng/torch"].clone())
+            t.queue = tensors[f"{tag}/queue"].clone()
+            t.rng.bit_generator.state = st
+        with torch.no_grad():
+            for k, v in self.classifier.named_parameters():
+                v.copy_(tensors[f"classifier/{k}"])
+        self.cls_optimizer = torch.optim.Adam(self.classifier.parameters(), lr=self.preset.lrs.classifier)
+        optimizer_from_tensors("adam/classifier", self.cls_optimizer, tensors)
+        self.generator.set_state(tensors["rng/torch"].clone())
+        self.rng.bit_generator.state = meta["numpy_rng"]
+        self.step = self.t1.step = self.t2.step = int(meta["step"])
+        self.elapsed = float(meta.get("elapsed", 0.0))
+        self.history = list(meta.get("history", []))
+        self.prune_log = list(meta.get("prune_log", []))
+        self.last_checkpoint_step = self.step
+
+    # ------------------------------------------------------------------ result
+    def world(self, extra_metadata: dict[str, Any] | None = None):
+        """The merged world (:func:`.world.merged_world`)."""
+        from .world import merged_world
+
+        return merged_world(self, extra_metadata)
+
+    def write_world(self, path: str | Path, extra_metadata: dict[str, Any] | None = None) -> Path:
+        from train_world.world_writer import write_world
+
+        return write_world(path, self.world(extra_metadata))
+
+
+def footprint_mask(trainer: DualTrainer, means: np.ndarray, poses: np.ndarray, margin: float) -> np.ndarray:
+    """Bool ``[N]``: centres whose xy lie in an object footprint at ``poses``."""
+    return footprint_contains(trainer.footprints(poses), np.asarray(means)[:, :2], margin)

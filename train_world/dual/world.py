@@ -1,0 +1,190 @@
+"""The merged world of a two-state run (what ``dsg-train`` writes for a capture with two training states).
+
+* **Background** (co-pasting, :func:`.merge.co_paste_background`): ``G1``'s background Gaussians outside the
+  state-1 object footprints, plus ``G2``'s background Gaussians inside them (that table region was visible
+  in state 2), minus any of those inside a state-2 footprint. Footprints are the table-plane convex hulls of
+  both fields' object Gaussians placed at that state's poses, dilated by ``footprint_margin``.
+* **Objects**: each object once, from the field that reproduces both training states better: starting from
+  every object taken from ``G1``, object ``k`` is switched to ``G2``'s copy (moved by ``T_2->1``) when that
+  lowers the L1 error of the merged scene rendered at both states' poses on a few training views of each.
+  Object Gaussians are stored in the object's own frame (``inv(P_state1)``), as for single-state worlds.
+
+The world's reference state is ``states[0]``; it stores the poses of every state in the capture and the
+cameras of both training states; ``metadata["dual"]`` holds the two-state options, the per-object sources and
+the co-pruning log.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from dsg_gym.world import Cameras, World
+from train_world.recon.field import PARAM_NAMES, SegmentedField, rigid_transform_gaussians
+from train_world.world_writer import build_world
+
+from .merge import co_paste_background
+from .transfer import gaussian_transforms, relative_transforms
+
+if TYPE_CHECKING:
+    from .trainer import DualTrainer
+
+__all__ = ["choose_object_sources", "merged_field", "merged_world"]
+
+
+def _rows(
+    field: SegmentedField, mask: torch.Tensor, T: torch.Tensor | None = None
+) -> dict[str, torch.Tensor]:
+    out = {k: v.detach()[mask] for k, v in field.params().items()}
+    if T is not None and out["means"].shape[0]:
+        out["means"], out["quats"] = rigid_transform_gaussians(out["means"], out["quats"], T)
+    return out
+
+
+def _concat(parts: list[dict[str, torch.Tensor]]) -> SegmentedField:
+    return SegmentedField(*(torch.cat([p[k] for p in parts], dim=0) for k in PARAM_NAMES))
+
+
+@torch.no_grad()
+def merged_field(
+    trainer: DualTrainer, sources: list[int] | None = None
+) -> tuple[SegmentedField, torch.Tensor, dict]:
+    """The merged Gaussians in the frame of ``states[0]`` and their classes ``[N]``; ``sources[k]`` in
+    ``{1, 2}`` picks the field object ``k`` comes from (default: all from ``G1``)."""
+    f1, f2 = trainer.fields
+    l1, l2 = trainer.labels()
+    k_obj = len(trainer.P1)
+    sources = sources or [1] * k_obj
+    fp1, fp2 = trainer.footprints(trainer.P1), trainer.footprints(trainer.P2)
+    bg1, bg2 = l1 == 0, l2 == 0
+    keep1, keep2 = co_paste_background(
+        f1.means.detach()[bg1].numpy(),
+        f2.means.detach()[bg2].numpy(),
+        fp1,
+        fp2,
+        trainer.config.footprint_margin,
+    )
+    m1 = bg1.clone()
+    m1[bg1] = torch.from_numpy(keep1)
+    m2 = bg2.clone()
+    m2[bg2] = torch.from_numpy(keep2)
+    parts = [_rows(f1, m1), _rows(f2, m2)]
+    classes = [torch.zeros(int(m1.sum()) + int(m2.sum()), dtype=torch.int64)]
+    for k in range(k_obj):
+        if sources[k] == 2:
+            part = _rows(f2, l2 == k + 1, trainer.T21[k])
+        else:
+            part = _rows(f1, l1 == k + 1)
+        parts.append(part)
+        classes.append(torch.full((part["means"].shape[0],), k + 1, dtype=torch.int64))
+    info = {
+        "background_from_1": int(m1.sum()),
+        "background_from_2": int(m2.sum()),
+        "background_dropped_1": int(bg1.sum() - m1.sum()),
+        "object_sources": [int(s) for s in sources],
+    }
+    return _concat(parts), torch.cat(classes), info
+
+
+@torch.no_grad()
+def _scene_error(
+    trainer: DualTrainer, field: SegmentedField, classes: torch.Tensor, views_per_state: int
+) -> float:
+    err = 0.0
+    for d, P in ((trainer.data1, trainer.P1), (trainer.data2, trainer.P2)):
+        T = gaussian_transforms(classes, relative_transforms(trainer.P1, P))
+        idx = np.linspace(0, len(d) - 1, min(views_per_state, len(d))).round().astype(int)
+        for i in idx:
+            out = field.render(
+                d.viewmats[i : i + 1],
+                d.Ks[i : i + 1],
+                d.width,
+                d.height,
+                transform=T,
+                background=trainer.t1.background,
+                with_features=False,
+            )
+            err += float((out.rgb[0].clamp(0, 1) - d.images[i]).abs().mean())
+    return err
+
+
+def choose_object_sources(trainer: DualTrainer, views_per_state: int = 6) -> list[int]:
+    """Per object, 1 or 2: the field whose copy gives the lower merged-scene error (greedy, module docstring)."""
+    l1, l2 = trainer.labels()
+    sources = [1] * len(trainer.P1)
+    field, classes, _ = merged_field(trainer, sources)
+    best = _scene_error(trainer, field, classes, views_per_state)
+    for k in range(len(sources)):
+        if int((l2 == k + 1).sum()) == 0:
+            continue
+        trial = list(sources)
+        trial[k] = 2
+        if int((l1 == k + 1).sum()) == 0:
+            sources = trial
+            field, classes, _ = merged_field(trainer, sources)
+            best = _scene_error(trainer, field, classes, views_per_state)
+            continue
+        field, classes, _ = merged_field(trainer, trial)
+        e = _scene_error(trainer, field, classes, views_per_state)
+        if e < best:
+            best, sources = e, trial
+    return sources
+
+
+def merged_world(trainer: DualTrainer, extra_metadata: dict[str, Any] | None = None) -> World:
+    """The world file content of a finished two-state run (module docstring)."""
+    d1, d2 = trainer.data1, trainer.data2
+    s1, s2 = trainer.config.states
+    sources = choose_object_sources(trainer) if len(trainer.P1) else []
+    field, classes, info = merged_field(trainer, sources)
+    meta = {
+        "format_note": "see dsg_gym.world",
+        "num_classes": d1.num_classes,
+        "object_ids": list(d1.object_ids),
+        "object_names": list(d1.object_names),
+        "train_config": trainer.config.base.to_dict(),
+        "source": d1.source,
+        "state": s1,
+        "training_states": [s1, s2],
+        "heldout_views": list(d1.heldout),
+        "heldout_views_by_state": {s1: list(d1.heldout), s2: list(d2.heldout)},
+        "background": list(d1.background),
+        "image_size": [d1.width, d1.height],
+        "iterations": trainer.step,
+        "scene_extent": trainer.t1.extent,
+        "num_gaussians": field.num,
+        "dual": {
+            **trainer.config.to_dict(),
+            "ablation": trainer.config.ablation,
+            **info,
+            "field_sizes": [trainer.t1.field.num, trainer.t2.field.num],
+            "co_prune_log": trainer.prune_log[-50:],
+            "train_seconds": round(trainer.elapsed, 1),
+        },
+        **(extra_metadata or {}),
+    }
+    if "name" in d1.source:
+        meta["name"] = d1.source["name"]
+    if d1.table_bounds is not None:
+        meta["table"] = {"bounds": np.asarray(d1.table_bounds, dtype=np.float64).tolist()}
+    cams = {
+        s: Cameras(
+            np.asarray(d.all_viewmats, np.float32), np.asarray(d.all_Ks, np.float32), d.width, d.height
+        )
+        for s, d in ((s1, d1), (s2, d2))
+    }
+    return build_world(
+        field.to_gaussian_set(),
+        classes.numpy(),
+        d1.object_ids,
+        d1.object_names,
+        trainer.poses,
+        s1,
+        cams,
+        trainer.classifier.weight.detach().numpy(),
+        trainer.classifier.bias.detach().numpy(),
+        d1.units,
+        meta,
+    )

@@ -1,0 +1,339 @@
+"""``dsg-suite``: the DSG-World comparison on the default synthetic scenes (the paper's Tables 1 and 2).
+
+For every scene: generate the capture (``dsg-synth``, skipped when present), train baseline (a) (one field
+on ``state1``, segmentation only), derive (b) (a + kNN background completion) and train DSG-World with the
+ablations B, B+C and B+C+P (``dsg-train`` on both states); each training runs in its own process (wall time
+and peak RSS recorded) and is skipped when its world file exists, so an interrupted suite resumes. Every
+world is evaluated with ``dsg-eval`` on every test state of the capture (objects at the test poses, held-out
+cameras); a method's figure per scene is the mean over its test states.
+
+Writes ``OUT/table.md`` (methods x scenes, PSNR / SSIM / mask IoU, and the mean over scenes), ``OUT/table.json``,
+``OUT/grids/<scene>.png`` (rows: ground truth | baseline (a) | ours B+C+P, first test state), and per run
+``OUT/eval/<scene>/<method>/<state>/report.json``.
+
+Examples::
+
+    dsg-suite --out suite                                        # 7 scenes, default preset: hours
+    dsg-suite --out /tmp/s --scenes two_blocks --iterations 2000 --methods a,b,BCP
+    dsg-suite --out /tmp/s --scenes two_blocks --preset quick --width 32 --height 32 --views 16
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["METHODS", "main", "run_suite"]
+
+# name -> (label in the table, extra dsg-train options or None for baselines)
+METHODS: dict[str, tuple[str, list[str] | None]] = {
+    "a": ("(a) single-state, segmentation only", None),
+    "b": ("(b) single-state + kNN completion", None),
+    "B": ("ours: B", ["--no-prune", "--no-pseudo"]),
+    "BC": ("ours: B+C", ["--no-pseudo"]),
+    "BCP": ("ours: B+C+P", []),
+}
+
+
+def _run_json(cmd: list[str], log: Path) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    with open(log, "w") as f:
+        r = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=f, text=True, check=False)
+    if r.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed with status {r.returncode} (see {log})")
+    last = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
+    out = json.loads(last[-1]) if last else {}
+    out.setdefault("wall_seconds", round(time.perf_counter() - t0, 1))
+    return out
+
+
+def _scene_list(arg: str) -> list[str]:
+    from train_world.synth.cli import main as _  # noqa: F401  (fails early if synth is unavailable)
+
+    if arg == "all":
+        root = Path(__file__).resolve().parents[1] / "assets" / "scenes"
+        return sorted(p.stem for p in root.glob("*.json"))
+    return [s for s in arg.split(",") if s]
+
+
+def _grid_png(
+    scene_dir: Path, capture: Path, worlds: dict[str, Path], out_png: Path, state: str, rows: int = 4
+):
+    from dsg_gym.world import load_world
+    from train_world.data.format import atomic_write_bytes, encode_png
+    from train_world.evaluate import _grid, _poses_for, _u8, render_gaussians
+    from train_world.recon.data import load_eval_views
+
+    renders = {}
+    views = None
+    for m, path in worlds.items():
+        w = load_world(path)
+        bg = tuple(w.metadata.get("background", (0.0, 0.0, 0.0)))
+        if views is None:
+            views = load_eval_views(
+                capture,
+                state=state,
+                heldout=(),
+                downscale=1,
+                background=bg,
+                object_ids=w.object_ids,
+                all_views=True,
+            )
+        n = min(rows, len(views.images))
+        g = w.gaussians(poses=_poses_for(w, capture, state))
+        renders[m], _ = render_gaussians(
+            g, views.viewmats[:n].numpy(), views.Ks[:n].numpy(), views.width, views.height, bg
+        )
+    n = min(rows, len(views.images))
+    grid = [[_u8(views.images[i].numpy())] + [_u8(renders[m][i]) for m in worlds] for i in range(n)]
+    atomic_write_bytes(out_png, encode_png(_grid(grid)))
+
+
+def run_suite(
+    out: str | Path,
+    scenes: list[str],
+    methods: list[str],
+    *,
+    preset: str = "default",
+    iterations: int | None = None,
+    synth_args: list[str] | None = None,
+    seed: int = 0,
+    pseudo_every: int = 1,
+) -> dict[str, Any]:
+    """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``."""
+    from train_world.data import load_capture
+    from train_world.evaluate import evaluate
+
+    out = Path(out)
+    py = sys.executable
+    results: dict[str, Any] = {"preset": preset, "iterations": iterations, "scenes": {}, "methods": methods}
+    for scene in scenes:
+        cap = out / "data" / scene
+        logs = out / "logs" / scene
+        wdir = out / "worlds" / scene
+        logs.mkdir(parents=True, exist_ok=True)
+        wdir.mkdir(parents=True, exist_ok=True)
+        if not (cap / "scene.json").is_file():
+            _run_json(
+                [
+                    py,
+                    "-m",
+                    "train_world.synth.cli",
+                    "--scene",
+                    scene,
+                    "--out",
+                    str(cap),
+                    "--quiet",
+                    "--seed",
+                    str(seed),
+                    *(synth_args or []),
+                ],
+                logs / "synth.log",
+            )
+        splits = load_capture(cap, states=[], load_depth=False).splits
+        test_states = [s for s, split in splits.items() if split == "test"]
+        it = [] if iterations is None else ["--iterations", str(iterations)]
+        runs: dict[str, Any] = {}
+        for m in methods:
+            world = wdir / f"{m}.dsgw"
+            info_path = wdir / f"{m}.json"
+            if not world.is_file():
+                if m == "a":
+                    cmd = [
+                        py,
+                        "-m",
+                        "train_world.baselines",
+                        "single",
+                        str(cap),
+                        "--out",
+                        str(world),
+                        "--preset",
+                        preset,
+                        "--seed",
+                        str(seed),
+                        *it,
+                    ]
+                elif m == "b":
+                    a_world = wdir / "a.dsgw"
+                    if not a_world.is_file():
+                        _run_json(
+                            [
+                                py,
+                                "-m",
+                                "train_world.baselines",
+                                "single",
+                                str(cap),
+                                "--out",
+                                str(a_world),
+                                "--preset",
+                                preset,
+                                "--seed",
+                                str(seed),
+                                *it,
+                            ],
+                            logs / "a.log",
+                        )
+                    cmd = [py, "-m", "train_world.baselines", "knn", str(a_world), "--out", str(world)]
+                else:
+                    cmd = [
+                        py,
+                        "-m",
+                        "train_world.dual.cli",
+                        str(cap),
+                        "--out",
+                        str(world),
+                        "--preset",
+                        preset,
+                        "--seed",
+                        str(seed),
+                        "--quiet",
+                        "--pseudo-every",
+                        str(pseudo_every),
+                        *it,
+                        *METHODS[m][1],
+                    ]
+                info = _run_json(cmd, logs / f"{m}.log")
+                info_path.write_text(json.dumps(info, indent=1))
+            info = json.loads(info_path.read_text()) if info_path.is_file() else {}
+            per_state = {}
+            for s in test_states:
+                r = evaluate(world, cap, out / "eval" / scene / m / s, state=s)
+                per_state[s] = r["mean"]
+            mean = {
+                k: (
+                    float(np.mean([v[k] for v in per_state.values() if v[k] is not None]))
+                    if any(v[k] is not None for v in per_state.values())
+                    else None
+                )
+                for k in ("psnr", "ssim", "mask_iou")
+            }
+            runs[m] = {"mean": mean, "per_state": per_state, "train": info}
+        results["scenes"][scene] = runs
+        shown = {m: wdir / f"{m}.dsgw" for m in ("a", "BCP") if m in methods}
+        if shown and test_states:
+            (out / "grids").mkdir(parents=True, exist_ok=True)
+            _grid_png(out, cap, shown, out / "grids" / f"{scene}.png", test_states[0])
+        _write_tables(out, results)
+    return results
+
+
+def _f(v, nd=2):
+    return "-" if v is None else f"{v:.{nd}f}"
+
+
+def _write_tables(out: Path, results: dict[str, Any]) -> None:
+    from train_world.data.format import atomic_write_bytes, atomic_write_json
+
+    scenes = list(results["scenes"])
+    methods = results["methods"]
+    mean_over = {}
+    for m in methods:
+        vals = [results["scenes"][s][m]["mean"] for s in scenes if m in results["scenes"][s]]
+        mean_over[m] = {
+            k: (
+                float(np.mean([v[k] for v in vals if v[k] is not None]))
+                if any(v[k] is not None for v in vals)
+                else None
+            )
+            for k in ("psnr", "ssim", "mask_iou")
+        }
+    results["mean_over_scenes"] = mean_over
+    lines = [
+        f"# DSG-World suite (preset `{results['preset']}`"
+        + (f", {results['iterations']} iterations" if results["iterations"] else "")
+        + ")",
+        "",
+        (
+            "Novel-state simulation: objects at each test state's poses, held-out cameras; PSNR (dB) / SSIM / "
+            "mask IoU, mean over the test states of each scene."
+        ),
+        "",
+        "| method | " + " | ".join(scenes) + " | **mean** |",
+        "| --- |" + " --- |" * (len(scenes) + 1),
+    ]
+    for m in methods:
+        cells = []
+        for s in scenes:
+            r = results["scenes"][s].get(m)
+            cells.append(
+                "-"
+                if r is None
+                else f"{_f(r['mean']['psnr'])} / {_f(r['mean']['ssim'], 3)} / {_f(r['mean']['mask_iou'], 3)}"
+            )
+        mo = mean_over[m]
+        cells.append(f"**{_f(mo['psnr'])} / {_f(mo['ssim'], 3)} / {_f(mo['mask_iou'], 3)}**")
+        lines.append(f"| {METHODS[m][0]} | " + " | ".join(cells) + " |")
+    lines += ["", "| method | scene | train s | peak RSS MB |", "| --- | --- | --- | --- |"]
+    for s in scenes:
+        for m in methods:
+            t = results["scenes"][s].get(m, {}).get("train", {})
+            lines.append(f"| {m} | {s} | {t.get('wall_seconds', '-')} | {t.get('peak_rss_mb', '-')} |")
+    atomic_write_json(out / "table.json", results)
+    atomic_write_bytes(out / "table.md", ("\n".join(lines) + "\n").encode("utf-8"))
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="dsg-suite",
+        description=__doc__.split("\n")[0].split(": ", 1)[1],
+        epilog=__doc__.split("Examples::", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--out", type=Path, required=True, help="output folder (captures, worlds, eval, tables)")
+    p.add_argument("--scenes", default="all", help="comma-separated scene names or 'all' (default)")
+    p.add_argument("--methods", default="a,b,B,BC,BCP", help="subset of a,b,B,BC,BCP (default: all)")
+    p.add_argument("--preset", default="default")
+    p.add_argument("--iterations", type=int, help="steps per training (schedules scaled)")
+    p.add_argument("--pseudo-every", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--width", type=int)
+    p.add_argument("--height", type=int)
+    p.add_argument("--views", type=int)
+    p.add_argument("--test-views", type=int)
+    p.add_argument("--test-states", type=int)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    methods = [m for m in args.methods.split(",") if m]
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        print(f"dsg-suite: error: unknown methods {bad}; choose from {list(METHODS)}", file=sys.stderr)
+        return 2
+    synth = []
+    for name in ("width", "height", "views", "test_views", "test_states"):
+        v = getattr(args, name)
+        if v is not None:
+            synth += [f"--{name.replace('_', '-')}", str(v)]
+    try:
+        r = run_suite(
+            args.out,
+            _scene_list(args.scenes),
+            methods,
+            preset=args.preset,
+            iterations=args.iterations,
+            synth_args=synth,
+            seed=args.seed,
+            pseudo_every=args.pseudo_every,
+        )
+    except (RuntimeError, ValueError) as e:
+        print(f"dsg-suite: error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps({"out": str(args.out), "mean_over_scenes": r["mean_over_scenes"]}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

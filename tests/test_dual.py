@@ -1,0 +1,286 @@
+"""DSG-World two-state training: state transfer, L_align / L_pseudo, pseudo-states, co-pruning, co-pasting,
+the merged world, the dsg-train dispatch and the comparison with baseline (a) on a tiny scene."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dsg_gym.world import load_world
+from train_world.baselines import knn_complete, train_single_state
+from train_world.dual.losses import align_loss, pseudo_loss
+from train_world.dual.merge import co_paste_background, co_prune_masks, object_footprints_xy
+from train_world.dual.pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
+from train_world.dual.transfer import ObjectTransfer, gaussian_transforms, relative_transforms
+from train_world.evaluate import evaluate
+from train_world.recon import cli as recon_cli
+from train_world.recon.field import Classifier, SegmentedField
+from train_world.synth.cli import main as synth_main
+
+
+def _pose(x, y, z=0.05, yaw=0.0):
+    P = np.eye(4)
+    c, s = math.cos(yaw), math.sin(yaw)
+    P[:2, :2] = [[c, -s], [s, c]]
+    P[:3, 3] = [x, y, z]
+    return P
+
+
+# ----------------------------------------------------------------------------------- transfer
+def test_object_transfer_moves_objects_and_keeps_background():
+    P1 = np.stack([_pose(0.1, 0.0), _pose(-0.1, 0.1, yaw=0.5)])
+    P2 = np.stack([_pose(-0.2, 0.1, yaw=1.0), _pose(0.2, -0.1)])
+    T = relative_transforms(P1, P2)
+    labels = torch.tensor([0, 1, 2, 1, 0])
+    g = torch.Generator().manual_seed(0)
+    means = torch.randn(5, 3, generator=g) * 0.05
+    quats = torch.nn.functional.normalize(torch.randn(5, 4, generator=g), dim=-1)
+    M = gaussian_transforms(labels, T)
+    assert torch.equal(M[0], torch.eye(4)) and torch.allclose(M[2], T[1])
+    m2, _ = ObjectTransfer(labels, T)(means, quats)
+    assert torch.allclose(m2[[0, 4]], means[[0, 4]])  # background stays
+    # a point at object 1's origin in state 1 lands at its origin in state 2
+    o1 = torch.tensor(P1[0, :3, 3], dtype=torch.float32)
+    m_o, _ = ObjectTransfer(torch.tensor([1]), T)(o1[None], quats[:1])
+    assert torch.allclose(m_o[0], torch.tensor(P2[0, :3, 3], dtype=torch.float32), atol=1e-6)
+    with pytest.raises(ValueError):
+        gaussian_transforms(torch.tensor([3]), T)
+
+
+# ----------------------------------------------------------------------------------- losses
+def _scene_field(obj_offset=(0.0, 0.0)):
+    """An opaque background wall of class 0 and a small opaque object cluster of class 1 in front."""
+    g = torch.Generator().manual_seed(1)
+    xs = torch.linspace(-0.6, 0.6, 14)
+    wall = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+    wall = torch.cat([wall, torch.full((len(wall), 1), 2.0)], 1)
+    obj = 0.05 * torch.randn(40, 3, generator=g) + torch.tensor([obj_offset[0], obj_offset[1], 1.2])
+    pts = torch.cat([wall, obj])
+    rgb = torch.cat([torch.full((len(wall), 3), 0.3), torch.rand(len(obj), 3, generator=g)])
+    scales = torch.cat([torch.full((len(wall),), 0.08), torch.full((len(obj),), 0.03)])
+    feats = torch.zeros(len(pts), 16)
+    feats[: len(wall), 0] = 1.0
+    feats[len(wall) :, 1] = 1.0
+    f = SegmentedField.from_points(pts, rgb, scales, sh_degree=0, opacity=0.99, features=feats)
+    labels = torch.cat([torch.zeros(len(wall), dtype=torch.int64), torch.ones(len(obj), dtype=torch.int64)])
+    return f, labels
+
+
+def _camera():
+    vm = torch.eye(4)[None]
+    K = torch.tensor([[[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]]])
+    return vm, K
+
+
+def test_align_and_pseudo_losses_are_zero_for_aligned_fields_and_positive_otherwise():
+    vm, K = _camera()
+    clf = Classifier(16, 2)
+    with torch.no_grad():  # a confident classifier: feature channel c -> class c
+        clf.weight.zero_()
+        clf.weight[0, 0] = clf.weight[1, 1] = 1000.0
+        clf.bias.zero_()
+    P1 = _pose(0.0, 0.0, 1.2)[None]
+    P2 = _pose(0.15, -0.1, 1.2, yaw=0.7)[None]
+    g1, lab = _scene_field()
+    # G2 is G1 in state 2 exactly: its object Gaussians moved by T_1->2
+    m2, q2 = ObjectTransfer(lab, relative_transforms(P1, P2))(g1.means.detach(), g1.quats.detach())
+    g2 = SegmentedField(m2, q2, g1.log_scales, g1.opacity_logits, g1.sh0, g1.shN, g1.features)
+
+    def render(field, transform=None):
+        return field.render(vm, K, 32, 32, transform=transform, background=torch.zeros(3))
+
+    obs1, obs2 = render(g1), render(g2)  # the "captured" states
+    cls1, cls2 = clf(obs1.features[0]).argmax(-1), clf(obs2.features[0]).argmax(-1)
+    assert 0 < int(cls2.sum()) < 32 * 32  # the object is in view
+    o12 = render(g1, ObjectTransfer(lab, relative_transforms(P1, P2)))
+    o21 = render(g2, ObjectTransfer(lab, relative_transforms(P2, P1)))
+    l_align = align_loss(o12.rgb[0], o12.features[0], obs2.rgb[0], cls2, clf) + align_loss(
+        o21.rgb[0], o21.features[0], obs1.rgb[0], cls1, clf
+    )
+    assert float(l_align.detach()) < 1e-4
+    Pp = _pose(-0.1, 0.12, 1.2, yaw=-1.1)[None]
+    a = render(g1, ObjectTransfer(lab, relative_transforms(P1, Pp)))
+    b = render(g2, ObjectTransfer(lab, relative_transforms(P2, Pp)))
+    assert float(pseudo_loss(a.rgb[0], a.features[0], b.rgb[0], b.features[0], clf)) < 1e-4
+    # misaligned: G2's object is 6 cm off where T says it is
+    g2_off = SegmentedField(
+        m2 + torch.where(lab[:, None] == 1, torch.tensor([0.06, 0.0, 0.0]), torch.zeros(3)),
+        q2,
+        g1.log_scales,
+        g1.opacity_logits,
+        g1.sh0,
+        g1.shN,
+        g1.features,
+    )
+    o21b = render(g2_off, ObjectTransfer(lab, relative_transforms(P2, P1)))
+    assert float(align_loss(o21b.rgb[0], o21b.features[0], obs1.rgb[0], cls1, clf)) > 0.01
+    b2 = render(g2_off, ObjectTransfer(lab, relative_transforms(P2, Pp)))
+    assert float(pseudo_loss(a.rgb[0], a.features[0], b2.rgb[0], b2.features[0], clf)) > 0.01
+
+
+# ----------------------------------------------------------------------------------- pseudo-states
+def test_pseudo_states_are_collision_free_and_on_the_table():
+    rng = np.random.default_rng(0)
+    bounds = np.array([[-0.4, -0.3, 0.0], [0.4, 0.3, 0.0]])
+    ref = np.stack([_pose(-0.2, 0.0, 0.045), _pose(0.0, 0.1, 0.065), _pose(0.2, -0.1, 0.03)])
+    radii = np.array([0.09, 0.06, 0.05])
+    seen = []
+    for _ in range(200):
+        P = sample_pseudo_state(ref, radii, bounds, rng, margin=0.005)
+        assert pseudo_state_valid(P, radii, bounds, margin=0.005)
+        xy = P[:, :2, 3]
+        assert np.all(xy - radii[:, None] >= bounds[0, :2] - 1e-9) and np.all(
+            xy + radii[:, None] <= bounds[1, :2] + 1e-9
+        )
+        for i in range(3):
+            for j in range(i + 1, 3):
+                assert np.linalg.norm(xy[i] - xy[j]) >= radii[i] + radii[j] + 0.005 - 1e-9
+        assert np.allclose(P[:, 2, 3], ref[:, 2, 3]) and np.allclose(P[:, 2, 2], 1.0)  # upright, same height
+        seen.append(xy)
+    assert np.std(np.stack(seen)[:, :, 0]) > 0.05  # configurations vary
+    # an overlapping configuration is invalid; impossible footprints fall back to the reference poses
+    assert not pseudo_state_valid(np.stack([_pose(0, 0), _pose(0.05, 0)]), np.array([0.05, 0.05]), bounds)
+    assert not pseudo_state_valid(np.stack([_pose(0.38, 0)]), np.array([0.05]), bounds)
+    big = sample_pseudo_state(ref[:2], np.array([0.29, 0.29]), bounds, rng, max_tries=5, max_restarts=2)
+    assert np.array_equal(big, ref[:2])
+    r = footprint_radii([np.array([[0.05, 0.0, 0.0], [0.0, -0.03, 0.02]]), np.zeros((0, 3))], quantile=1.0)
+    assert np.allclose(r, [0.05, 0.05])
+
+
+# ----------------------------------------------------------------------------------- co-pruning / co-pasting
+def _table_grid(step=0.01):
+    xs = np.arange(-0.2, 0.2001, step)
+    return np.stack(np.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+
+
+def _square(cx, cy, h=0.05):
+    return np.array([[cx - h, cy - h, 0], [cx + h, cy - h, 0], [cx + h, cy + h, 0], [cx - h, cy + h, 0.1]])
+
+
+def test_co_pruning_removes_unexplained_gaussians_only():
+    tau = 0.02  # metres
+    bounds = np.array([[-0.2, -0.2, 0.0], [0.2, 0.2, 0.0]])
+    grid = np.concatenate([_table_grid(), np.zeros((len(_table_grid()), 1))], 1)
+    fp1 = object_footprints_xy([_square(-0.1, -0.1)])
+    fp2 = object_footprints_xy([_square(0.1, 0.1)])
+    g2 = grid.copy()
+    extra1 = np.array(
+        [
+            [0.0, 0.0, 0.10],  # floater 10 cm above the table: pruned
+            [0.0, 0.0, 0.015],  # 1.5 cm from the table surface (< tau): kept
+            [0.1, 0.1, 0.08],  # background floater inside the state-2 footprint: G2 never saw it, kept
+            [0.6, 0.0, 0.5],  # off the table (a wall): not tested, kept
+        ]
+    )
+    g1 = np.concatenate([grid, extra1])
+    bg1 = np.ones(len(g1), bool)
+    p1, p2 = co_prune_masks(
+        g1,
+        g2,
+        g2,
+        g1,
+        tau,
+        background_1=bg1,
+        background_2=np.ones(len(g2), bool),
+        footprints_1=fp1,
+        footprints_2=fp2,
+        table_bounds=bounds,
+    )
+    assert p1[: len(grid)].sum() == 0 and p1[len(grid) :].tolist() == [True, False, False, False]
+    assert p2.sum() == 0
+    # the same floater as an *object* Gaussian (not background) inside the state-2 footprint is pruned
+    p1b, _ = co_prune_masks(
+        g1,
+        g2,
+        g2,
+        g1,
+        tau,
+        background_1=np.r_[np.ones(len(grid), bool), [1, 1, 0, 1]].astype(bool),
+        background_2=np.ones(len(g2), bool),
+        footprints_1=fp1,
+        footprints_2=fp2,
+        table_bounds=bounds,
+    )
+    assert p1b[len(grid) + 2]
+    # symmetric: a floater in G2 is pruned against G1; a larger tau keeps it
+    g2f = np.concatenate([g2, [[0.05, -0.05, 0.2]]])
+    _, p2f = co_prune_masks(g1, g2f, g2f, g1, tau, table_bounds=bounds)
+    assert p2f[-1] and p2f[:-1].sum() == 0
+    _, p2g = co_prune_masks(g1, g2f, g2f, g1, 0.25, table_bounds=bounds)
+    assert not p2g.any()
+
+
+def test_co_pasting_fills_each_hole_from_the_other_state():
+    grid = _table_grid()
+    fp1 = object_footprints_xy([_square(-0.1, -0.1)])  # state-1 object (hole in G1's table)
+    fp2 = object_footprints_xy([_square(0.1, 0.1)])  # state-2 object (hole in G2's table)
+    in1 = (np.abs(grid[:, 0] + 0.1) <= 0.05) & (np.abs(grid[:, 1] + 0.1) <= 0.05)
+    in2 = (np.abs(grid[:, 0] - 0.1) <= 0.05) & (np.abs(grid[:, 1] - 0.1) <= 0.05)
+    z = lambda a, h=0.0: np.concatenate([a, np.full((len(a), 1), h)], 1)
+    junk1 = z(np.array([[-0.1, -0.1], [-0.12, -0.08]]), 0.03)  # G1's residue under its own object
+    bg1 = np.concatenate([z(grid[~in1]), junk1])
+    bg2 = z(grid[~in2])
+    keep1, keep2 = co_paste_background(bg1, bg2, fp1, fp2)
+    merged = np.concatenate([bg1[keep1], bg2[keep2]])
+    assert not keep1[-2:].any()  # the residue goes
+    assert len(merged) == len(grid)  # every table cell exactly once
+    got = {tuple(np.round(p[:2], 4)) for p in merged}
+    assert got == {tuple(np.round(p, 4)) for p in grid}
+    assert np.all(keep2 == in1[~in2])  # G2 contributes exactly the state-1 footprint
+
+
+# ----------------------------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    out = tmp_path_factory.mktemp("dual") / "two_blocks"
+    rc = synth_main(
+        [
+            "--scene",
+            "two_blocks",
+            "--out",
+            str(out),
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--views",
+            "16",
+            "--test-views",
+            "4",
+            "--test-states",
+            "1",
+            "--quiet",
+        ]
+    )
+    assert rc == 0
+    return out
+
+
+def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
+    ours = tmp_path / "ours.dsgw"
+    rc = recon_cli.main(
+        [str(tiny), "--out", str(ours), "--preset", "quick", "--prune-every", "50", "--quiet"]
+    )
+    assert rc == 0  # dispatched to the two-state trainer (no --single-state)
+    w = load_world(ours)
+    d = w.metadata["dual"]
+    assert d["ablation"] == "B+C+P" and w.metadata["training_states"] == ["state1", "state2"]
+    assert d["background_from_2"] > 0 and d["background_dropped_1"] > 0  # co-pasting used both fields
+    assert set(w.cameras) == {"state1", "state2"} and "test_0" in w.poses
+    n = w.background.num + sum(o.gaussians.num for o in w.objects.values())
+    assert n == w.metadata["num_gaussians"] and all(o.gaussians.num > 20 for o in w.objects.values())
+    base = tmp_path / "a.dsgw"
+    train_single_state(tiny, base, preset="quick")  # same preset, 300 steps of one field
+    r_ours = evaluate(ours, tiny, tmp_path / "eval_ours", state="test_0")["mean"]
+    r_a = evaluate(base, tiny, tmp_path / "eval_a", state="test_0")["mean"]
+    assert r_ours["psnr"] > r_a["psnr"] + 0.5, (r_ours, r_a)
+    assert r_ours["ssim"] > r_a["ssim"] and r_ours["mask_iou"] > r_a["mask_iou"], (r_ours, r_a)
+    # baseline (b): kNN completion adds flat background Gaussians inside the state-1 footprints
+    wa = load_world(base)
+    wb = knn_complete(wa)
+    added = wb.metadata["knn_completion"]["added"]
+    assert added > 0 and wb.background.num == wa.background.num + added
+    assert np.all(np.abs(wb.background.means[-added:, 2]) < 1e-6)  # on the table top (z = 0)

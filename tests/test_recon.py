@@ -252,5 +252,8 @@ def test_cli_help_and_quick_run(tiny, tmp_path, capsys):
     n = w.background.num + sum(o.gaussians.num for o in w.objects.values())
     assert n == w.metadata["num_gaussians"]
     assert (tmp_path / "w.dsgw.ckpt").exists()
-    assert cli.main([str(tiny), "--out", str(out), "--quiet"]) == 2  # two training states, no --single-state
-    assert "--single-state" in capsys.readouterr().err
+    # (without --single-state, dsg-train hands two-state captures to train_world.dual; not exercised here)
+    bad = tmp_path / "nothing"
+    bad.mkdir()
+    assert cli.main([str(bad), "--out", str(out), "--single-state", "--quiet"]) == 2
+    assert "not a capture" in capsys.readouterr().err

@@ -41,7 +41,7 @@ from train_world.recon.presets import TrainConfig
 from train_world.recon.trainer import Trainer, TrainingDiverged, make_optimizers, means_lr
 
 from .losses import align_loss, pseudo_loss
-from .merge import co_prune_masks, footprint_contains, object_footprints_xy, robust_object_points
+from .merge import co_prune_masks, object_footprints_xy, robust_object_points
 from .pseudo import footprint_radii, sample_pseudo_state
 from .transfer import ObjectTransfer, gaussian_transforms, object_labels, relative_transforms
 
@@ -416,8 +416,3 @@ class DualTrainer:
         from train_world.world_writer import write_world
 
         return write_world(path, self.world(extra_metadata))
-
-
-def footprint_mask(trainer: DualTrainer, means: np.ndarray, poses: np.ndarray, margin: float) -> np.ndarray:
-    """Bool ``[N]``: centres whose xy lie in an object footprint at ``poses``."""
-    return footprint_contains(trainer.footprints(poses), np.asarray(means)[:, :2], margin)

@@ -219,7 +219,7 @@ def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1
     cc_ = conic_c * half
     logo = math.log(np.float64(o) * 255.0)
     # Beyond this sigma, alpha < 1/255 for sure: skip the exp (the margin covers rounding).
-    smax = logo * 1.0001 + 1e-4
+    smax = zero + np.float32(logo * 1.0001 + 1e-4)  # in the working dtype: no conversion per pixel
     y0 = max(ry0, py0) - py0
     y1 = min(ry1, py0 + ph - 1) - py0
     xr0 = max(rx0, px0)
@@ -406,7 +406,7 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
             o = opacities[co, g]
             logo = math.log(np.float64(o) * 255.0)
             # Beyond this sigma, alpha < 1/255 for sure: skip the exp (the margin covers rounding).
-            smax = logo * 1.0001 + 1e-4
+            smax = zero + np.float32(logo * 1.0001 + 1e-4)
             y0 = max(rects[c, g, 2], py0) - py0
             y1 = min(rects[c, g, 3], py0 + ph - 1) - py0
             xr0 = max(rects[c, g, 0], px0)

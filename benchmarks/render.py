@@ -69,7 +69,14 @@ def _measure(n: int, size: int, backend: str, repeats: int) -> dict:
     return {"backend": backend, "n": n, "width": size, "height": size, "channels": CHANNELS,
             "forward_ms": round(fwd, 3), "forward_backward_ms": round(fwd_bwd, 3),
             "peak_rss_mb": round(_peak_rss_mb(), 1), "repeats": repeats,
-            "threads": {"torch": torch.get_num_threads(), "numba": _numba_threads()}}
+            "threads": {"torch": torch.get_num_threads(), "numba": _numba_threads()},
+            "threading_layer": _threading_layer()}
+
+
+def _threading_layer() -> str:
+    import numba
+
+    return numba.threading_layer()
 
 
 def _numba_threads() -> int:
@@ -98,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="render.json", help="output JSON path")
     ap.add_argument("--quick", action="store_true", help="fewer repeats, skip torch at the largest size")
     ap.add_argument("--repeats", type=int, default=None, help="numba repeats (default 20, quick 5)")
+    ap.add_argument("--threading-layer", default="omp", choices=["omp", "workqueue"],
+                    help="numba threading layer (omp: training's; workqueue: the runtime default)")
     args = ap.parse_args(argv)
     repeats = args.repeats or (5 if args.quick else 20)
     records = []
@@ -107,7 +116,8 @@ def main(argv: list[str] | None = None) -> int:
                 out = os.path.join(tmp, "r.json")
                 cmd = [sys.executable, "-m", "benchmarks.render", "--child", str(n), str(size), str(repeats),
                        str(_torch_repeats(n, size, args.quick)), out]
-                subprocess.run(cmd, check=True)
+                env = {**os.environ, "NUMBA_THREADING_LAYER": args.threading_layer}
+                subprocess.run(cmd, check=True, env=env)
                 recs = json.loads(Path(out).read_text())
             for r in recs:
                 print(f"{r['backend']:6s} n={n:7d} {size}x{size}  fwd {r['forward_ms']:9.2f} ms  "

@@ -225,6 +225,7 @@ class SceneRenderer:
             tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
         else:
             tiles = np.flatnonzero(dirty.reshape(-1)).astype(np.int64)
+        tiles = tiles[R.balanced_order(tiles.size)]
         if tiles.size:
             b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
             a, b = self._bg, st["proj"]

@@ -34,17 +34,16 @@ _WORLD_CACHE: dict[str, WorldModel] = {}
 
 
 def load_default_world() -> WorldModel:
-    """The bundled world (cached per process); built in memory from its scene if the file is missing or
-    unreadable (regenerate it with ``python -m train_world.geom_world --out assets/worlds/default_geom.dsgworld``)."""
+    """The bundled world (cached per process). If the asset is missing or unreadable this raises a
+    ValueError; regenerate it with ``python -m train_world.geom_world --out assets/worlds/default_geom.dsgworld``
+    (``dsg_gym`` never imports ``train_world``)."""
     key = str(DEFAULT_WORLD)
     if key not in _WORLD_CACHE:
         try:
             _WORLD_CACHE[key] = WorldModel.load(DEFAULT_WORLD)
-        except ValueError as e:  # missing or outdated asset: build the same world in memory (a few seconds)
-            gym.logger.warn(f"bundled world unusable ({e}); building it from assets/scenes/two_blocks.json")
-            from train_world.geom_world import build_geom_world
-
-            _WORLD_CACHE[key] = build_geom_world("two_blocks")
+        except ValueError as e:
+            raise ValueError(f"the bundled world does not load ({e}); regenerate it with "
+                             "`python -m train_world.geom_world --out assets/worlds/default_geom.dsgworld`") from e
     return _WORLD_CACHE[key]
 
 

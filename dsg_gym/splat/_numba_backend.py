@@ -80,7 +80,7 @@ class _Composite(torch.autograd.Function):
         out_T = torch.empty((C, height, width), dtype=dt)
         m2, cn, op, col = _np(means2d), _np(conics), _np(opacities), _np(colors)
         R.composite_forward(m2, cn, op, col, r, tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
-                            _consts(m2.dtype), out.numpy(), out_T.numpy())
+                            _consts(m2.dtype), R.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy())
         if backgrounds is not None:
             out += out_T[..., None] * backgrounds[:, None, None, :].detach()
         alphas = (1.0 - out_T)[..., None]
@@ -106,7 +106,7 @@ class _Composite(torch.autograd.Function):
         pair_grads = np.zeros((tile_gauss.shape[0], D + 6), dtype=vo.dtype)
         R.composite_backward(_np(means2d), _np(conics), _np(opacities), _np(colors), _np(rects),
                              tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
-                             _consts(out.numpy().dtype), out.numpy(),
+                             _consts(out.numpy().dtype), R.balanced_order(C * tiles_x * tiles_y), out.numpy(),
                              out_T.numpy(), vo, _np(v_alphas[..., 0]), pair_grads)
         v_means2d = torch.empty((C, N, 2), dtype=dt)
         v_conics = torch.empty((C, N, 3), dtype=dt)

@@ -43,6 +43,13 @@ def make_consts(dtype) -> np.ndarray:
     return np.array([ALPHA_MAX, ALPHA_MIN, T_MIN, 0.5, 1.0, 0.0], dtype=dtype)
 
 
+def balanced_order(n: int) -> np.ndarray:
+    """Tile visiting order for ``prange``: thread chunks are contiguous ranges of iterations, so
+    hand each thread a strided set of tiles spread over the image (balances the work)."""
+    p = max(1, nb.get_num_threads())
+    return np.concatenate([np.arange(r, n, p) for r in range(p)]).astype(np.int64)
+
+
 @nb.njit(cache=True)
 def depth_order(keys, rects):
     """Front-to-back order of each camera's visible Gaussians (stable LSD radix sort).
@@ -299,19 +306,20 @@ def store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T):
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss,
-                      tiles_x, tiles_y, width, height, consts, out_colors, out_T):
+                      tiles_x, tiles_y, width, height, consts, tile_order, out_colors, out_T):
     """Front-to-back compositing.
 
     means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors [Cc,N,D] (Co, Cc in {1, C}),
-    rects [C,N,4], consts from ``make_consts``; writes out_colors [C,H,W,D] (without
-    background) and out_T [C,H,W] (final transmittance).
+    rects [C,N,4], consts from ``make_consts``, tile_order from ``balanced_order``; writes
+    out_colors [C,H,W,D] (without background) and out_T [C,H,W] (final transmittance).
     """
     C = means2d.shape[0]
     D = colors.shape[2]
     Co = opacities.shape[0]
     Cc = colors.shape[0]
     T = tiles_x * tiles_y
-    for ct in nb.prange(C * T):
+    for m in nb.prange(C * T):
+        ct = tile_order[m]
         c = ct // T
         px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
             ct - c * T, tiles_x, width, height, D, out_colors.dtype)
@@ -332,7 +340,7 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss,
-                       tiles_x, tiles_y, width, height, consts, out_colors, out_T, v_colors,
+                       tiles_x, tiles_y, width, height, consts, tile_order, out_colors, out_T, v_colors,
                        v_alphas, pair_grads):
     """Per-(tile, Gaussian) gradients.
 
@@ -352,7 +360,8 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
     half = consts[3]
     one = consts[4]
     zero = consts[5]
-    for ct in nb.prange(C * T):
+    for m in nb.prange(C * T):
+        ct = tile_order[m]
         if tile_offsets[ct] == tile_offsets[ct + 1]:
             continue
         c = ct // T

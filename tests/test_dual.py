@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from _captures import tiny_capture
 import torch
 
 from dsg_gym.world import load_world
@@ -18,7 +19,6 @@ from train_world.dual.transfer import ObjectTransfer, gaussian_transforms, relat
 from train_world.evaluate import evaluate
 from train_world.recon import cli as recon_cli
 from train_world.recon.field import Classifier, SegmentedField
-from train_world.synth.cli import main as synth_main
 
 
 def _pose(x, y, z=0.05, yaw=0.0):
@@ -236,28 +236,7 @@ def test_co_pasting_fills_each_hole_from_the_other_state():
 # ----------------------------------------------------------------------------------- end to end
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    out = tmp_path_factory.mktemp("dual") / "two_blocks"
-    rc = synth_main(
-        [
-            "--scene",
-            "two_blocks",
-            "--out",
-            str(out),
-            "--width",
-            "32",
-            "--height",
-            "32",
-            "--views",
-            "16",
-            "--test-views",
-            "4",
-            "--test-states",
-            "1",
-            "--quiet",
-        ]
-    )
-    assert rc == 0
-    return out
+    return tiny_capture(tmp_path_factory.mktemp("dual"), test_views=4)
 
 
 def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):

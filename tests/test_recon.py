@@ -6,6 +6,7 @@ import dataclasses
 import math
 
 import pytest
+from _captures import tiny_capture
 import torch
 
 from dsg_gym.world import load_world
@@ -17,34 +18,12 @@ from train_world.recon.losses import identity_loss, neighbour_kl_loss, photometr
 from train_world.recon.presets import TrainConfig, get_preset
 from train_world.recon.strategy import DensifyStrategy, StrategyConfig
 from train_world.recon.trainer import Trainer, TrainingDiverged, make_optimizers
-from train_world.synth.cli import main as synth_main
 from train_world.world_writer import encode_world
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    out = tmp_path_factory.mktemp("cap") / "two_blocks"
-    rc = synth_main(
-        [
-            "--scene",
-            "two_blocks",
-            "--out",
-            str(out),
-            "--width",
-            "32",
-            "--height",
-            "32",
-            "--views",
-            "16",
-            "--test-views",
-            "2",
-            "--test-states",
-            "1",
-            "--quiet",
-        ]
-    )
-    assert rc == 0
-    return out
+    return tiny_capture(tmp_path_factory.mktemp("cap"), test_views=2)
 
 
 def _config(**preset_overrides) -> TrainConfig:

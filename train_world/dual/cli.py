@@ -89,6 +89,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="world file to write")
     p.add_argument("--preset", choices=sorted(PRESETS), default="default", help="default: default")
     p.add_argument("--iterations", type=int, help="steps (both fields per step); scales the schedule")
+    p.add_argument("--max-gaussians", type=int, help="cap on each field's Gaussian count (default: preset's)")
     p.add_argument("--downscale", type=int, default=1)
     p.add_argument("--holdout-every", type=int, default=8, help="hold out every n-th view of each state")
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
@@ -106,6 +107,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--pseudo-every", type=int, default=1, help="pseudo-state loss every n-th joint step")
     p.add_argument("--checkpoint", type=Path, help="checkpoint file (default: WORLD.ckpt)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
+    p.add_argument(
+        "--branch-from",
+        type=Path,
+        metavar="CKPT",
+        help="start from a checkpoint taken before the joint phase by a run that differs only in B/C/P",
+    )
+    p.add_argument(
+        "--stop-at-joint",
+        action="store_true",
+        help="train the reconstruction phase only, write the checkpoint and stop (no world)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -113,8 +125,13 @@ def _parser() -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace):
     from .trainer import DualConfig
 
+    preset = scaled_preset(args.preset, args.iterations)
+    if args.max_gaussians is not None:
+        if args.max_gaussians < 1000:
+            raise ValueError(f"--max-gaussians must be at least 1000, got {args.max_gaussians}")
+        preset = dataclasses.replace(preset, max_gaussians=args.max_gaussians)
     base = TrainConfig(
-        preset=scaled_preset(args.preset, args.iterations),
+        preset=preset,
         seed=args.seed,
         downscale=args.downscale,
         holdout_every=args.holdout_every,
@@ -150,6 +167,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.resume and ckpt.exists():
             trainer.load_checkpoint()
             print(f"dsg-train: resumed from {ckpt} at step {trainer.step}", file=sys.stderr)
+        elif args.branch_from is not None:
+            trainer.load_checkpoint(args.branch_from, branch=True)
+            print(f"dsg-train: branched from {args.branch_from} at step {trainer.step}", file=sys.stderr)
         print(
             f"dsg-train: two states {config.states}, {len(trainer.data1)}+{len(trainer.data2)} training views "
             f"{trainer.data1.width}x{trainer.data1.height}, {trainer.data1.num_classes - 1} objects, ablation "
@@ -157,6 +177,13 @@ def main(argv: list[str] | None = None) -> int:
             f"({config.base.preset.iterations} steps, joint from {trainer.joint_start})",
             file=sys.stderr,
         )
+        if args.stop_at_joint:
+            trainer.train(progress=not args.quiet, stop_after=trainer.joint_start)
+            trainer.save_checkpoint()
+            print(json.dumps({"checkpoint": str(ckpt), "step": trainer.step,
+                              "train_seconds": round(trainer.elapsed, 1),
+                              "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))
+            return 0
         trainer.train(progress=not args.quiet)
         world = trainer.world()
         from train_world.world_writer import write_world

@@ -369,12 +369,28 @@ class DualTrainer:
         save_checkpoint(Path(path or self.checkpoint_path), tensors, meta)
         self.last_checkpoint_step = self.step
 
-    def load_checkpoint(self, path: str | Path | None = None) -> None:
+    def load_checkpoint(self, path: str | Path | None = None, *, branch: bool = False) -> None:
+        """Continue from a checkpoint made with the same options. ``branch=True`` also accepts one that
+        differs only in the ablation switches (B, C, P), provided it was taken before the joint phase
+        starts: up to then the switches change nothing, so all ablations can share one reconstruction
+        phase bit for bit (``dsg-train --branch-from``, used by ``dsg-suite``)."""
         path = Path(path or self.checkpoint_path)
         tensors, meta = load_checkpoint(path)
         if meta.get("kind") != "dual":
             raise ValueError(f"{path}: not a two-state (dual) checkpoint")
-        if DualConfig.from_dict(meta["dual_config"]) != self.config:
+        stored = DualConfig.from_dict(meta["dual_config"])
+        if branch:
+            switches = {k: getattr(self.config, k) for k in ("use_align", "use_prune", "use_pseudo")}
+            if dataclasses.replace(stored, **switches) != self.config:
+                raise ValueError(
+                    f"{path}: can only branch from a checkpoint whose options differ in B/C/P alone"
+                )
+            if int(meta["step"]) > self.joint_start:
+                raise ValueError(
+                    f"{path}: checkpoint is at step {meta['step']}, past the start of the joint phase "
+                    f"({self.joint_start}); branching would not reproduce a separate run"
+                )
+        elif stored != self.config:
             raise ValueError(
                 f"{path}: checkpoint was made with different options; use the same options to resume"
             )

@@ -33,6 +33,7 @@ def train_single_state(
     seed: int = 0,
     state: str = "state1",
     progress: bool = False,
+    max_gaussians: int | None = None,
 ) -> dict:
     """Baseline (a): train one field on ``state`` (schedule scaled to ``iterations`` as in the two-state
     CLI) and write its world to ``out``; returns ``{"world", "train_seconds", "gaussians"}``."""
@@ -41,7 +42,10 @@ def train_single_state(
     from train_world.recon.presets import TrainConfig
     from train_world.recon.trainer import Trainer
 
-    cfg = TrainConfig(preset=scaled_preset(preset, iterations), seed=seed, state=state)
+    p = scaled_preset(preset, iterations)
+    if max_gaussians is not None:
+        p = dataclasses.replace(p, max_gaussians=int(max_gaussians))
+    cfg = TrainConfig(preset=p, seed=seed, state=state)
     tr = Trainer(load_training_data(capture, cfg), cfg)
     tr.train(progress=progress)
     tr.write_world(out, {"baseline": "a: single-state segmentation"})
@@ -158,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--preset", default="default")
     a.add_argument("--iterations", type=int)
     a.add_argument("--seed", type=int, default=0)
+    a.add_argument("--max-gaussians", type=int, help="cap on the field's Gaussian count (default: preset's)")
     b = sub.add_parser("knn", help="baseline (b): kNN background completion of a single-state world")
     b.add_argument("world", type=Path)
     b.add_argument("--out", type=Path, required=True)
@@ -167,7 +172,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.cmd == "single":
             info = train_single_state(
-                args.capture, args.out, preset=args.preset, iterations=args.iterations, seed=args.seed
+                args.capture,
+                args.out,
+                preset=args.preset,
+                iterations=args.iterations,
+                seed=args.seed,
+                max_gaussians=args.max_gaussians,
             )
         else:
             from dsg_gym.world import load_world

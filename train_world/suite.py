@@ -110,6 +110,7 @@ def run_suite(
     synth_args: list[str] | None = None,
     seed: int = 0,
     pseudo_every: int = 1,
+    max_gaussians: int | None = None,
 ) -> dict[str, Any]:
     """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``."""
     from train_world.data import load_capture
@@ -144,66 +145,37 @@ def run_suite(
         splits = load_capture(cap, states=[], load_depth=False).splits
         test_states = [s for s, split in splits.items() if split == "test"]
         it = [] if iterations is None else ["--iterations", str(iterations)]
+        if max_gaussians is not None:
+            it += ["--max-gaussians", str(max_gaussians)]
+        single = [py, "-m", "train_world.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed), *it]
+        dual = [py, "-m", "train_world.dual.cli", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
+                "--pseudo-every", str(pseudo_every), *it]
+        recon_ckpt, recon_info = wdir / "recon.ckpt", wdir / "recon.json"
         runs: dict[str, Any] = {}
         for m in methods:
             world = wdir / f"{m}.dsgw"
             info_path = wdir / f"{m}.json"
             if not world.is_file():
                 if m == "a":
-                    cmd = [
-                        py,
-                        "-m",
-                        "train_world.baselines",
-                        "single",
-                        str(cap),
-                        "--out",
-                        str(world),
-                        "--preset",
-                        preset,
-                        "--seed",
-                        str(seed),
-                        *it,
-                    ]
+                    cmd = [*single, "--out", str(world)]
                 elif m == "b":
                     a_world = wdir / "a.dsgw"
                     if not a_world.is_file():
-                        _run_json(
-                            [
-                                py,
-                                "-m",
-                                "train_world.baselines",
-                                "single",
-                                str(cap),
-                                "--out",
-                                str(a_world),
-                                "--preset",
-                                preset,
-                                "--seed",
-                                str(seed),
-                                *it,
-                            ],
-                            logs / "a.log",
-                        )
+                        _run_json([*single, "--out", str(a_world)], logs / "a.log")
                     cmd = [py, "-m", "train_world.baselines", "knn", str(a_world), "--out", str(world)]
                 else:
-                    cmd = [
-                        py,
-                        "-m",
-                        "train_world.dual.cli",
-                        str(cap),
-                        "--out",
-                        str(world),
-                        "--preset",
-                        preset,
-                        "--seed",
-                        str(seed),
-                        "--quiet",
-                        "--pseudo-every",
-                        str(pseudo_every),
-                        *it,
-                        *METHODS[m][1],
-                    ]
+                    # the ablations share one reconstruction phase (identical in all of them), then branch
+                    if not recon_info.is_file():
+                        r = _run_json([*dual, "--out", str(wdir / "recon.dsgw"), "--stop-at-joint",
+                                       "--checkpoint", str(recon_ckpt)], logs / "recon.log")
+                        recon_info.write_text(json.dumps(r, indent=1))
+                    cmd = [*dual, "--out", str(world), "--branch-from", str(recon_ckpt), *METHODS[m][1]]
                 info = _run_json(cmd, logs / f"{m}.log")
+                if m in ("B", "BC", "BCP"):  # wall time and memory of the whole training, shared phase included
+                    r = json.loads(recon_info.read_text())
+                    info["recon_phase_seconds"] = r.get("wall_seconds")
+                    info["wall_seconds"] = round(info.get("wall_seconds", 0.0) + r.get("wall_seconds", 0.0), 1)
+                    info["peak_rss_mb"] = max(info.get("peak_rss_mb", 0.0), r.get("peak_rss_mb", 0.0))
                 info_path.write_text(json.dumps(info, indent=1))
             info = json.loads(info_path.read_text()) if info_path.is_file() else {}
             per_state = {}
@@ -296,6 +268,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="default")
     p.add_argument("--iterations", type=int, help="steps per training (schedules scaled)")
     p.add_argument("--pseudo-every", type=int, default=1)
+    p.add_argument("--max-gaussians", type=int, help="cap on each field's Gaussian count (default: preset's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
@@ -327,6 +300,7 @@ def main(argv: list[str] | None = None) -> int:
             synth_args=synth,
             seed=args.seed,
             pseudo_every=args.pseudo_every,
+            max_gaussians=args.max_gaussians,
         )
     except (RuntimeError, ValueError) as e:
         print(f"dsg-suite: error: {e}", file=sys.stderr)

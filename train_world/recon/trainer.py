@@ -50,7 +50,7 @@ _LR_KEY = {
 
 
 class TrainingDiverged(RuntimeError):
-    """The loss became NaN or infinite; the last good checkpoint is kept."""
+    """The loss or a gradient became NaN or infinite; the last good checkpoint is kept."""
 
 
 def make_optimizers(field: SegmentedField, lrs, extent: float) -> dict[str, torch.optim.Optimizer]:
@@ -187,6 +187,14 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
         self.cls_optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        # a finite loss can still give a NaN/Inf gradient: stop before Adam spreads it into the field
+        named = [*self.field.params().items(), *self.classifier.named_parameters(prefix="classifier")]
+        bad = [k for k, t in named if t.grad is not None and not bool(torch.isfinite(t.grad).all())]
+        if bad:
+            raise TrainingDiverged(
+                f"gradient of {', '.join(bad)} became non-finite at step {self.step + 1} (parameters unchanged); "
+                f"the last good checkpoint (step {self.last_checkpoint_step}) is kept"
+            )
         self.optimizers["means"].param_groups[0]["lr"] = means_lr(self.step, p.iterations, p.lrs, self.extent)
         for opt in self.optimizers.values():
             opt.step()

@@ -311,3 +311,21 @@ def test_dual_resume_and_branch_reproduce_uninterrupted_runs(tiny, tmp_path):
     assert dual_cli.main([str(tiny), "--out", str(tmp_path / "z.dsgw"), "--preset", "quick", "--iterations",
                           "60", "--prune-every", "10", "--tau", "0.05", "--quiet", "--branch-from",
                           str(ck)]) == 2
+
+
+def test_dual_non_finite_gradient_stops_before_the_fields_change(tiny, tmp_path):
+    from train_world.dual import cli as dual_cli
+    from train_world.dual.trainer import DualTrainer
+    from train_world.recon.trainer import TrainingDiverged
+
+    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(
+        [str(tiny), "--out", "x", "--preset", "quick", "--iterations", "40"]))
+    tr = DualTrainer(tiny, cfg)
+    tr.train(progress=False, stop_after=25)  # into the joint phase
+    before = {k: v.detach().clone() for k, v in tr.t2.field.params().items()}
+    hook = tr.t2.field.sh0.register_hook(lambda g: g * float("nan"))
+    with pytest.raises(TrainingDiverged, match=r"g2\.sh0"):
+        tr.train_step()
+    hook.remove()
+    assert tr.step == 25
+    assert all(torch.equal(v, before[k]) for k, v in tr.t2.field.params().items())

@@ -120,6 +120,15 @@ def test_truncated_checkpoints_are_refused_and_the_good_one_still_loads(data, go
     (tmp_path / "garbled.ckpt").write_bytes(bytes(garbled))
     with pytest.raises(CheckpointError, match="not a dsg-train checkpoint"):
         load_checkpoint(tmp_path / "garbled.ckpt")
+    # one flipped bit in the tensor data (the checkpoint's SHA-256 catches it)
+    (hlen,) = struct.unpack("<Q", blob[:8])
+    for at in (8 + hlen, 8 + hlen + (len(blob) - 8 - hlen) // 2, len(blob) - 1):
+        flipped = bytearray(blob)
+        flipped[at] ^= 0x04
+        (tmp_path / "flipped.ckpt").write_bytes(bytes(flipped))
+        with pytest.raises(CheckpointError, match="does not match its SHA-256"):
+            fresh.load_checkpoint(tmp_path / "flipped.ckpt")
+        assert fresh.step == 0
     assert ckpt.read_bytes() == blob
     fresh.load_checkpoint(ckpt)
     assert fresh.step == EVERY

@@ -294,6 +294,15 @@ class DualTrainer:
         for opt in opts:
             opt.zero_grad(set_to_none=True)
         loss.backward()
+        # a finite loss can still give a non-finite gradient: refuse the step before Adam spreads it
+        named = [(f"{tag}.{k}", v) for tag, t in (("g1", t1), ("g2", t2)) for k, v in t.field.params().items()]
+        named += list(self.classifier.named_parameters(prefix="classifier"))
+        bad = [k for k, v in named if v.grad is not None and not bool(torch.isfinite(v.grad).all())]
+        if bad:
+            raise TrainingDiverged(
+                f"gradient of {', '.join(bad)} became non-finite at step {self.step + 1} (fields unchanged); "
+                f"the last good checkpoint (step {self.last_checkpoint_step}) is kept"
+            )
         for t in (t1, t2):
             t.optimizers["means"].param_groups[0]["lr"] = means_lr(self.step, p.iterations, p.lrs, t.extent)
         for opt in opts[:-1]:

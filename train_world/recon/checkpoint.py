@@ -3,11 +3,13 @@ document (step, config, numpy RNG state, ...). Written atomically (temp file + `
 run always leaves the previous complete checkpoint.
 
 Adam moments and step counts are stored as tensors and the torch generator state as a uint8 tensor, so
-a resumed run continues bit for bit.
+a resumed run continues bit for bit. The JSON document carries a SHA-256 of every tensor's name, dtype, shape
+and bytes, so a checkpoint with flipped bytes is refused rather than resumed from.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import struct
 from pathlib import Path
@@ -27,6 +29,7 @@ __all__ = [
     "optimizer_from_tensors",
     "optimizer_to_tensors",
     "save_checkpoint",
+    "tensor_digest",
 ]
 
 CHECKPOINT_FORMAT = "dsg-train-checkpoint"
@@ -37,12 +40,20 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be used (truncated, foreign, other version)."""
 
 
+def tensor_digest(tensors: dict[str, torch.Tensor]) -> str:
+    """SHA-256 over the tensors in name order (name, dtype, shape and raw bytes of each)."""
+    h = hashlib.sha256()
+    for k in sorted(tensors):
+        t = tensors[k].detach().contiguous()
+        h.update(f"{k}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy())
+    return h.hexdigest()
+
+
 def save_checkpoint(path: str | Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
-    doc = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, **meta}
-    data = st_save(
-        {k: v.detach().contiguous() for k, v in tensors.items()}, metadata={"json": json.dumps(doc)}
-    )
-    atomic_write_bytes(path, data)
+    tensors = {k: v.detach().contiguous() for k, v in tensors.items()}
+    doc = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, **meta, "sha256": tensor_digest(tensors)}
+    atomic_write_bytes(path, st_save(tensors, metadata={"json": json.dumps(doc)}))
 
 
 def load_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -71,6 +82,8 @@ def load_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str
         tensors = st_load(data)
     except Exception as e:  # safetensors raises its own error types for corrupt data
         raise CheckpointError(f"{p}: corrupt or truncated checkpoint ({e})") from e
+    if "sha256" in doc and tensor_digest(tensors) != doc["sha256"]:
+        raise CheckpointError(f"{p}: corrupt checkpoint (tensor data does not match its SHA-256)")
     return tensors, doc
 
 

@@ -38,7 +38,7 @@ from train_world.recon.data import TrainData, load_training_data
 from train_world.recon.field import PARAM_NAMES, SegmentedField
 from train_world.recon.losses import identity_loss, neighbour_kl_loss, photometric_loss, psnr
 from train_world.recon.presets import TrainConfig
-from train_world.recon.trainer import Trainer, TrainingDiverged, make_optimizers, means_lr
+from train_world.recon.trainer import Trainer, TrainingDiverged, check_gradients, make_optimizers, means_lr
 
 from .losses import align_loss, pseudo_loss
 from .merge import co_prune_masks, object_footprints_xy, robust_object_points
@@ -297,12 +297,7 @@ class DualTrainer:
         # a finite loss can still give a non-finite gradient: refuse the step before Adam spreads it
         named = [(f"{tag}.{k}", v) for tag, t in (("g1", t1), ("g2", t2)) for k, v in t.field.params().items()]
         named += list(self.classifier.named_parameters(prefix="classifier"))
-        bad = [k for k, v in named if v.grad is not None and not bool(torch.isfinite(v.grad).all())]
-        if bad:
-            raise TrainingDiverged(
-                f"gradient of {', '.join(bad)} became non-finite at step {self.step + 1} (fields unchanged); "
-                f"the last good checkpoint (step {self.last_checkpoint_step}) is kept"
-            )
+        check_gradients(named, self.step + 1, self.last_checkpoint_step)
         for t in (t1, t2):
             t.optimizers["means"].param_groups[0]["lr"] = means_lr(self.step, p.iterations, p.lrs, t.extent)
         for opt in opts[:-1]:

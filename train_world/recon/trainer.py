@@ -36,7 +36,7 @@ from .losses import identity_loss, neighbour_kl_loss, photometric_loss, psnr
 from .presets import TrainConfig
 from .strategy import DensifyStrategy, StrategyConfig
 
-__all__ = ["Trainer", "TrainingDiverged", "make_optimizers", "means_lr"]
+__all__ = ["Trainer", "TrainingDiverged", "check_gradients", "make_optimizers", "means_lr"]
 
 _LR_KEY = {
     "means": "means",
@@ -51,6 +51,17 @@ _LR_KEY = {
 
 class TrainingDiverged(RuntimeError):
     """The loss or a gradient became NaN or infinite; the last good checkpoint is kept."""
+
+
+def check_gradients(named, step: int, last_checkpoint: int | None) -> None:
+    """Raise :class:`TrainingDiverged` naming every parameter in ``named`` ``[(name, tensor)]`` whose
+    gradient has a NaN or Inf (called between ``backward`` and the optimiser steps: nothing has changed)."""
+    bad = [k for k, t in named if t.grad is not None and not bool(torch.isfinite(t.grad).all())]
+    if bad:
+        raise TrainingDiverged(
+            f"gradient of {', '.join(bad)} became non-finite at step {step} (parameters unchanged); "
+            f"the last good checkpoint (step {last_checkpoint}) is kept"
+        )
 
 
 def make_optimizers(field: SegmentedField, lrs, extent: float) -> dict[str, torch.optim.Optimizer]:
@@ -191,13 +202,11 @@ class Trainer:
         self.cls_optimizer.zero_grad(set_to_none=True)
         loss.backward()
         # a finite loss can still give a NaN/Inf gradient: stop before Adam spreads it into the field
-        named = [*self.field.params().items(), *self.classifier.named_parameters(prefix="classifier")]
-        bad = [k for k, t in named if t.grad is not None and not bool(torch.isfinite(t.grad).all())]
-        if bad:
-            raise TrainingDiverged(
-                f"gradient of {', '.join(bad)} became non-finite at step {self.step + 1} (parameters unchanged); "
-                f"the last good checkpoint (step {self.last_checkpoint_step}) is kept"
-            )
+        check_gradients(
+            [*self.field.params().items(), *self.classifier.named_parameters(prefix="classifier")],
+            self.step + 1,
+            self.last_checkpoint_step,
+        )
         self.optimizers["means"].param_groups[0]["lr"] = means_lr(self.step, p.iterations, p.lrs, self.extent)
         for opt in self.optimizers.values():
             opt.step()

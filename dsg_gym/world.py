@@ -24,6 +24,7 @@ truncated or altered file is refused with :class:`WorldFormatError`, as is an un
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import struct
@@ -36,6 +37,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .gaussians import GaussianSet
+from .poses import quat_multiply, quat_normalize, rotmat_to_quat
+from .sh_basis import rotate_sh
 
 __all__ = [
     "FORMAT_NAME",
@@ -140,53 +143,26 @@ class World:
         return features @ self.classifier_weight.T + self.classifier_bias
 
 
-# ----------------------------------------------------------------------------------- numpy geometry
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
-
-
-def _rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    m = R
-    tr = np.trace(m)
-    cands = np.array(
-        [
-            [1 + tr, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]],
-            [m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]],
-            [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1]],
-            [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2]],
-        ]
-    )
-    q = cands[int(np.argmax([tr, m[0, 0], m[1, 1], m[2, 2]]))]
-    q = q / np.linalg.norm(q)
-    return -q if q[0] < 0 else q
-
-
-def transform_gaussians(g: GaussianSet, T: np.ndarray) -> GaussianSet:
-    """``g`` moved by the rigid transform ``T`` ``[4,4]`` (float64 arithmetic; SH bands are not rotated)."""
+# ----------------------------------------------------------------------------------- moving Gaussians
+def transform_gaussians(g: GaussianSet, T: np.ndarray, label: int | None = None) -> GaussianSet:
+    """``g`` moved by the rigid transform ``T`` ``[4,4]``: centres and rotations (float64 arithmetic,
+    renormalised quaternions; zero quaternions read as the identity) and the SH bands, rotated with the
+    Gaussians so their view-dependent colour turns with them (:func:`dsg_gym.splat.sh.rotate_sh`).
+    ``label``: set every Gaussian's label (None: keep). Encodings (raw logits/log-scales) are kept."""
     T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"transform must be a finite [4,4] matrix, got shape {T.shape}")
     R, t = T[:3, :3], T[:3, 3]
     means = g.means.astype(np.float64) @ R.T + t
-    quats = _quat_mul(_rotmat_to_quat(R)[None], g.quats.astype(np.float64))
-    return GaussianSet(
-        means,
-        quats,
-        g.scales,
-        g.opacities,
-        g.sh,
-        g.features,
-        g.labels,
-        opacity_logits=g.opacity_logits,
-        log_scales=g.log_scales,
+    q = g.quats.astype(np.float64)
+    q = np.where(np.linalg.norm(q, axis=1, keepdims=True) > 0, q, np.array([1.0, 0.0, 0.0, 0.0]))
+    quats = quat_normalize(quat_multiply(rotmat_to_quat(R)[None], quat_normalize(q)))
+    return dataclasses.replace(
+        g,
+        means=means.astype(g.means.dtype),
+        quats=quats.astype(g.quats.dtype),
+        sh=rotate_sh(g.sh, R),
+        labels=g.labels if label is None else np.full(g.num, label, np.int32),
     )
 
 

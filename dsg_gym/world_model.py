@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from .gaussians import GaussianSet
-from .poses import as_poses7, pose7_to_matrix, quat_multiply, quat_normalize
+from .poses import as_poses7, pose7_to_matrix
+from .world import transform_gaussians as _transform_matrix
 
 __all__ = ["Cameras", "TableBounds", "WorldModel", "WorldModelError"]
 
@@ -149,6 +150,19 @@ class WorldModel:
     def num_gaussians(self) -> int:
         return self.background.num + sum(o.num for o in self.objects)
 
+    def without_features(self) -> WorldModel:
+        """The same world without per-Gaussian identity features (``features`` become ``[N, 0]``; everything
+        else is shared, not copied). The runtime never reads them: masks come from object labels, and the
+        renderer composites only RGB, one-hot labels and depth. ``DSGWorld-v0`` loads world files this way."""
+        if self.background.num_features == 0 and all(o.num_features == 0 for o in self.objects):
+            return self
+
+        def strip(g: GaussianSet) -> GaussianSet:
+            return dataclasses.replace(g, features=np.zeros((g.num, 0), np.float32))
+
+        return dataclasses.replace(self, background=strip(self.background),
+                                   objects=tuple(strip(o) for o in self.objects))
+
     def object_extents(self) -> np.ndarray:
         """Per object ``[K]``: radius of its Gaussian means about its frame origin (metres)."""
         return np.array([float(np.linalg.norm(o.means.astype(np.float64), axis=1).max()) for o in self.objects])
@@ -227,18 +241,12 @@ class WorldModel:
 
 
 def transform_gaussians(gs: GaussianSet, pose7: np.ndarray, label: int | None = None) -> GaussianSet:
-    """``gs`` moved by the rigid pose ``pose7`` (float64 math, renormalised quaternions; zero quaternions of
-    ``gs`` are read as the identity)."""
-    p = np.asarray(pose7, dtype=np.float64)
-    m = pose7_to_matrix(p)
-    means = gs.means.astype(np.float64) @ m[:3, :3].T + m[:3, 3]
-    q = gs.quats.astype(np.float64)
-    q = np.where(np.linalg.norm(q, axis=1, keepdims=True) > 0, q, np.array([1.0, 0.0, 0.0, 0.0]))
-    quats = quat_normalize(quat_multiply(quat_normalize(p[3:7])[None], quat_normalize(q)))
-    labels = gs.labels if label is None else np.full(gs.num, label, np.int32)
-    return dataclasses.replace(
-        gs, means=means.astype(np.float32), quats=quats.astype(np.float32), labels=labels
-    ).without_encodings()
+    """``gs`` moved by the rigid pose ``pose7`` (:func:`dsg_gym.world.transform_gaussians`: float64 math,
+    renormalised quaternions, SH rotated with the Gaussians), float32 centres, encodings dropped."""
+    m = pose7_to_matrix(np.asarray(pose7, dtype=np.float64))
+    out = _transform_matrix(gs, m, label=label)
+    return dataclasses.replace(out, means=out.means.astype(np.float32), quats=out.quats.astype(np.float32)
+                               ).without_encodings()
 
 
 def derive_table_bounds(

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -251,3 +253,32 @@ def test_sh_degree_zero_matches_dc_colour():
     assert torch.equal(a, b)
     c, _, _ = rasterize(**{**s, "colors": sh}, sh_degree=3)
     assert not torch.allclose(a, c)  # higher degrees are view dependent
+
+
+def test_sh_rotation_turns_the_colour_function_with_the_gaussian():
+    from scipy.spatial.transform import Rotation
+
+    from dsg_gym.sh_basis import rotate_sh, sh_basis, sh_rotation
+
+    rng = np.random.default_rng(3)
+    for deg in (1, 2, 3):
+        k = (deg + 1) ** 2
+        R1, R2 = (Rotation.random(random_state=deg + i).as_matrix() for i in (0, 10))
+        c = rng.normal(size=(7, k, 3))
+        d = rng.normal(size=(7, 3))
+        ev = lambda coeffs, dirs: spherical_harmonics(deg, torch.from_numpy(dirs), torch.from_numpy(coeffs)).numpy()  # noqa: E731
+        # f'(d) = f(R^T d)
+        assert np.allclose(ev(rotate_sh(c, R1), d), ev(c, d @ R1), atol=1e-12)
+        D1, D2 = sh_rotation(R1, deg), sh_rotation(R2, deg)
+        assert np.allclose(sh_rotation(R1 @ R2, deg), D1 @ D2, atol=1e-12)  # a representation
+        assert np.allclose(D1 @ D1.T, np.eye(k), atol=1e-12) and np.allclose(sh_rotation(np.eye(3), deg), np.eye(k))
+        assert np.array_equal(D1[0], np.eye(k)[0])  # DC untouched
+        # the torch-free basis (world-file reader) equals the renderer's torch SH
+        u = d / np.linalg.norm(d, axis=1, keepdims=True)
+        assert np.allclose(sh_basis(deg, u), ev(np.broadcast_to(np.eye(k), (7, k, k)).copy(), u), atol=1e-14)
+    dc = rng.normal(size=(4, 1, 3)).astype(np.float32)
+    assert rotate_sh(dc, Rotation.random(random_state=0).as_matrix()) is dc
+    with pytest.raises(ValueError, match="5 bases"):
+        rotate_sh(np.zeros((2, 5, 3)), np.eye(3))
+    with pytest.raises(ValueError, match="rotation"):
+        sh_rotation(np.full((3, 3), np.nan), 2)

@@ -9,19 +9,7 @@ from __future__ import annotations
 
 import torch
 
-C0 = 0.28209479177387814
-C1 = 0.4886025119029199
-C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-      0.5462742152960396)
-C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-      -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
-
-
-def num_sh_bases(degree: int) -> int:
-    """Number of basis functions up to ``degree``: (degree + 1)^2."""
-    if degree not in (0, 1, 2, 3):
-        raise ValueError(f"sh degree must be 0..3, got {degree}")
-    return (degree + 1) ** 2
+from ..sh_basis import C0, C1, C2, C3, num_sh_bases, rotate_sh, sh_rotation  # noqa: F401  (re-exported)
 
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
@@ -74,3 +62,4 @@ def spherical_harmonics(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor) -
             + C3[4] * x * (4.0 * zz - xx - yy) * coeffs[..., 13, :]
             + C3[5] * z * (xx - yy) * coeffs[..., 14, :]
             + C3[6] * x * (xx - 3.0 * yy) * coeffs[..., 15, :])
+

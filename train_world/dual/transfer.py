@@ -69,6 +69,10 @@ class ObjectTransfer:
         self.t = table[:, :3, 3]
         self.q = rotmat_to_quat(self.R)
 
+    def rotations(self) -> torch.Tensor:
+        """Each Gaussian's rotation ``[N,3,3]`` (for turning its SH colour with it)."""
+        return self.R[self.labels]
+
     def __call__(self, means: torch.Tensor, quats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         lab = self.labels
         R, t, q = self.R[lab], self.t[lab], self.q[lab]

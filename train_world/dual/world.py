@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from dsg_gym.sh_basis import rotate_sh
 from dsg_gym.world import Cameras, World
 from train_world.recon.field import PARAM_NAMES, SegmentedField, rigid_transform_gaussians
 from train_world.world_writer import build_world
@@ -40,6 +41,9 @@ def _rows(
     out = {k: v.detach()[mask] for k, v in field.params().items()}
     if T is not None and out["means"].shape[0]:
         out["means"], out["quats"] = rigid_transform_gaussians(out["means"], out["quats"], T)
+        if out["shN"].shape[1]:  # the view-dependent colour turns with the object
+            sh = rotate_sh(torch.cat([out["sh0"], out["shN"]], 1).double().numpy(), T[:3, :3].double().numpy())
+            out["shN"] = torch.from_numpy(sh[:, 1:]).to(out["shN"].dtype)
     return out
 
 

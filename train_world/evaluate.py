@@ -27,6 +27,7 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -165,6 +166,7 @@ def evaluate(
     world = load_world(world_path)
     meta = world.metadata
     src = meta.get("source", {})
+    src = src if isinstance(src, Mapping) else {}  # geometry and PLY worlds name their source with a string
     trained_state = meta.get("state", meta.get("reference_state"))
     bg = tuple(meta.get("background", (0.0, 0.0, 0.0)))
     eval_state = state or trained_state

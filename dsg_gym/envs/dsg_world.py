@@ -40,7 +40,7 @@ def load_default_world() -> WorldModel:
     key = str(DEFAULT_WORLD)
     if key not in _WORLD_CACHE:
         try:
-            _WORLD_CACHE[key] = WorldModel.load(DEFAULT_WORLD)
+            _WORLD_CACHE[key] = WorldModel.load(DEFAULT_WORLD).without_features()
         except ValueError as e:
             raise ValueError(f"the bundled world does not load ({e}); regenerate it with "
                              "`python -m train_world.geom_world --out assets/worlds/default_geom.dsgworld`") from e
@@ -55,7 +55,8 @@ def _resolve_world(world) -> WorldModel:
     if isinstance(world, (str, Path)):
         key = str(Path(world).resolve())
         if key not in _WORLD_CACHE:
-            _WORLD_CACHE[key] = WorldModel.load(world)  # WorldModelError (a ValueError) names the file
+            # WorldModelError (a ValueError) names the file; identity features are never used at runtime
+            _WORLD_CACHE[key] = WorldModel.load(world).without_features()
         return _WORLD_CACHE[key]
     raise ValueError(f"world must be None, a path or a WorldModel, got {type(world).__name__}")
 
@@ -132,7 +133,7 @@ class DSGWorldEnv(gym.Env):
 
     | kwarg | default | meaning |
     | --- | --- | --- |
-    | ``world`` | ``None`` | ``None`` (the bundled geometry world of the ``two_blocks`` scene), a world file path, or a ``WorldModel`` |
+    | ``world`` | ``None`` | ``None`` (the bundled geometry world of the ``two_blocks`` scene), a world file path (loaded without its per-Gaussian identity features, which the runtime never uses: masks come from object labels), or a ``WorldModel`` (used as given) |
     | ``width``, ``height`` | 128, 128 | observation image size (pixels) |
     | ``cameras`` | ``None`` | ``None`` = capture camera 0; an int (capture camera index); a look-at dict ``{"eye", "target", "up"?, "fovy_deg"?}``; or a **list** of these for V views (images get a leading V axis) |
     | ``obs`` | ``("rgb", "mask", "poses")`` | any of ``rgb``, ``mask``, ``depth``, ``poses``; only these are rendered (``goal`` is always included) |

@@ -1,0 +1,582 @@
+"""``dsg-compact``: fewer Gaussians and SH bands in a world file, within a PSNR budget.
+
+    dsg-compact WORLD --out WORLD2 [--max-psnr-drop 0.3] [--capture CAPTURE] [--report FILE]
+
+Steps (the per-Gaussian scores come from :mod:`train_world.importance`):
+
+1. **SH bands.** For real orthonormal SH, ``sum_m Y_lm(d)^2 = (2l+1) / 4pi`` for every direction ``d``, so
+   dropping the bands above ``L`` changes a colour channel by at most ``sqrt(sum_{l>L} (2l+1)/4pi) *
+   ||c_{l>L}||`` over the whole sphere (Cauchy-Schwarz; the clamp at 0 can only shrink the change). Each
+   Gaussian keeps the lowest degree whose bound is ``<= --sh-tolerance`` (its higher bands are zeroed) and a
+   part (background, each object) is stored with the highest degree any of its Gaussians still needs, so a
+   world whose colours are view-independent drops to degree 0 and the renderer skips the SH evaluation.
+2. **Plausible cameras.** The background is scored *without the objects* (they move and reveal what is
+   under them) from the capture cameras plus an orbit around the point they look at: ``--rings`` rings of
+   ``--per-ring`` look-at cameras at the capture cameras' median distance, spanning their elevations
+   widened by 10 degrees below and 20 above (a test orbit is often higher). Each object is scored *alone*
+   in its own frame (occlusion by other objects never counts) from ``--object-views`` cameras on a sphere at
+   that distance: every side it can show in any orientation.
+3. **Invisible Gaussians.** Those whose accumulated blending weight is below ``--min-weight`` (1/255 px) in
+   every plausible view: removing one moves no pixel of those views by more than 1/255.
+4. **Redundant Gaussians.** In rounds, up to ``--step`` of the remaining Gaussians with the smallest
+   removal error (what the images lose without each one alone, mean per view; pooled over all parts) are
+   removed, skipping any of the ``--neighbours`` nearest kept neighbours of one already taken in the round
+   (each score assumes the others stay: the discs of a uniformly coloured face all look redundant, but not
+   at once); then the scores are recomputed. Vertices of an object's collision hull (the convex hull of its
+   means with opacity >= 0.2, what :class:`dsg_gym.physics.PhysicsProxy` builds) are never removed.
+5. **Budget.** Every round is checked (:mod:`train_world.compact_checks`) and the round that breaks the
+   budget is bisected. Without ``--capture`` the check is self-consistency: the compacted world against the
+   original, composited by the runtime renderer at every state the world stores (captured and test poses)
+   from ``--validation-views`` of the plausible cameras. An added error of mean square ``d`` in a view
+   raises the error of a world whose own PSNR against ground truth is ``--reference-psnr`` (MSE ``m0``) to
+   about ``m0 + d`` (compaction errors are not correlated with the reconstruction error): a drop of
+   ``10 log10(1 + d / m0)`` dB, whose mean over views must stay ``<= --max-psnr-drop``. With ``--capture``
+   the reference is the original's measured mean PSNR on the capture's test states, and the measured drop
+   there (``dsg-eval``, original minus compacted, mean over test states) must be within budget too.
+6. **Refit.** ``--refit-cycles`` times: the survivors' colours, opacities, shrinking scales and (background
+   only) means are fitted to the original part's renders (:mod:`train_world.refit`, ``--refit-steps`` Adam
+   steps; kept only if the check improves), then pruning resumes from the refitted world (except after the
+   last refit). Object means and hull-vertex opacities stay, so the physics proxy is unchanged.
+
+``--fraction F`` skips the budget (no checks until the end) and keeps ``F`` of the Gaussians.
+The result keeps everything else (poses, cameras, classifier, identity features, encodings of the kept
+Gaussians); ``metadata.compacted`` records the options and figures, and table bounds derived from the
+geometry are stored so pruning cannot move them. Identity features stay in the file (``dsg-eval`` classifies
+rendered features for its mask IoU); the runtime does not need them (env masks come from object labels), so
+``DSGWorld-v0`` drops them when it loads a world file. Output is written atomically; the report (counts, PSNR,
+times) is printed as JSON and, with ``--report``, written to a file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dsg_gym.gaussians import GaussianSet
+from dsg_gym.world import World, load_world
+from train_world.compact_checks import CaptureCheck, SelfCheck, with_parts
+from train_world.importance import SceneCameras, gaussian_importance, scene_cameras, sphere_cameras
+
+__all__ = ["CompactConfig", "compact_world", "hull_vertices", "main", "sh_change_bound", "truncate_sh"]
+
+_BAND_NORM2 = np.array([(2 * b + 1) / (4 * math.pi) for b in range(4)])  # sum_m Y_lm^2 per band
+
+
+@dataclass(frozen=True)
+class CompactConfig:
+    """Options of :func:`compact_world` (the module docstring explains them)."""
+
+    max_psnr_drop: float = 0.3
+    reference_psnr: float = 30.0
+    fraction: float | None = None
+    min_weight: float = 1.0 / 255.0
+    sh_tolerance: float = 0.01
+    rings: int = 4
+    per_ring: int = 24
+    object_views: int = 64
+    step: float = 0.15
+    min_fraction: float = 0.05
+    neighbours: int = 8
+    refit_steps: int = 300
+    refit_cycles: int = 3
+    validation_views: int = 48
+    bisect_steps: int = 6
+
+    def __post_init__(self) -> None:
+        def bad(name: str, want: str):
+            raise ValueError(f"{name} must be {want}, got {getattr(self, name)!r}")
+
+        for name in ("max_psnr_drop", "min_weight", "sh_tolerance"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                bad(name, "a finite number >= 0")
+        if not (math.isfinite(self.reference_psnr) and self.reference_psnr > 0):
+            bad("reference_psnr", "a positive number of dB")
+        if self.fraction is not None and not (0.0 < self.fraction <= 1.0):
+            bad("fraction", "in (0, 1]")
+        if not 0.0 < self.step < 1.0:
+            bad("step", "in (0, 1)")
+        if not 0.0 < self.min_fraction <= 1.0:
+            bad("min_fraction", "in (0, 1]")
+        for name in ("rings", "per_ring", "bisect_steps", "neighbours", "refit_steps", "refit_cycles"):
+            if getattr(self, name) < 0:
+                bad(name, ">= 0")
+        for name in ("object_views", "validation_views"):
+            if getattr(self, name) < 1:
+                bad(name, ">= 1")
+
+
+# --------------------------------------------------------------------------------------------- SH bands
+def sh_change_bound(sh: np.ndarray, degree: int) -> np.ndarray:
+    """``[N]`` float64: the largest change of any colour channel, over all view directions, when the bands
+    above ``degree`` of ``sh [N,K,3]`` are dropped (0 when there are none)."""
+    sh = np.asarray(sh, np.float64)
+    k0 = (degree + 1) ** 2
+    if sh.shape[1] <= k0:
+        return np.zeros(sh.shape[0])
+    d_max = round(math.sqrt(sh.shape[1])) - 1
+    scale = math.sqrt(float(_BAND_NORM2[degree + 1 : d_max + 1].sum()))
+    return scale * np.sqrt((sh[:, k0:] ** 2).sum(1)).max(1)
+
+
+def truncate_sh(g: GaussianSet, tolerance: float) -> tuple[GaussianSet, np.ndarray]:
+    """``g`` with each Gaussian's SH cut to the lowest degree whose :func:`sh_change_bound` is
+    ``<= tolerance`` (higher bands zeroed) and the array cut to the highest degree still used; also
+    returns the per-Gaussian degrees ``[N]`` int."""
+    d = g.sh_degree
+    need = np.full(g.num, d, np.int64)
+    for L in range(d - 1, -1, -1):  # from the top: a Gaussian needs L if its bands above L are small
+        ok = sh_change_bound(g.sh, L) <= tolerance
+        need[ok] = L
+    new_d = int(need.max()) if g.num else 0
+    sh = np.ascontiguousarray(g.sh[:, : (new_d + 1) ** 2]).copy()
+    for L in range(new_d):
+        sh[need == L, (L + 1) ** 2 :] = 0.0
+    return dataclasses.replace(g, sh=sh), need
+
+
+# --------------------------------------------------------------------------------------------- parts
+def hull_vertices(g: GaussianSet) -> np.ndarray:
+    """``[N]`` bool: the vertices of the convex hull of the means with opacity >= 0.2 (all of them when
+    fewer than 4 or the hull is degenerate), the points :class:`dsg_gym.physics.PhysicsProxy` builds the
+    collision hull from."""
+    idx = np.flatnonzero(g.opacities >= 0.2)
+    if len(idx) < 4:
+        idx = np.arange(g.num)
+    out = np.zeros(g.num, bool)
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        out[idx[ConvexHull(g.means[idx].astype(np.float64)).vertices]] = True
+    except (QhullError, ValueError):  # flat or tiny sets: keep them all
+        out[idx] = True
+    return out
+
+
+@dataclass
+class _Part:
+    name: str
+    g: GaussianSet  # SH already truncated
+    viewmats: np.ndarray  # scoring cameras
+    protected: np.ndarray  # [N] bool
+    keep: np.ndarray  # [N] bool
+    sh_need: np.ndarray  # [N] int: SH degree each Gaussian still uses
+
+    def kept(self) -> GaussianSet:
+        return self.g.subset(self.keep)
+
+
+def _capture_cameras(world: World) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The world's capture cameras of the reference state's image size, reference state first."""
+    if not world.cameras:
+        raise ValueError("the world has no capture cameras to derive plausible cameras from")
+    ref = world.metadata.get("reference_state")
+    order = sorted(world.cameras, key=lambda s: (s != ref, str(s)))
+    first = world.cameras[order[0]]
+    same = [
+        world.cameras[s]
+        for s in order
+        if (world.cameras[s].width, world.cameras[s].height) == (first.width, first.height)
+    ]
+    vm = np.concatenate([np.asarray(c.viewmats, np.float64) for c in same])
+    Ks = np.concatenate([np.asarray(c.Ks, np.float64) for c in same])
+    return vm, Ks, first.width, first.height
+
+
+def _parts(
+    world: World, gsets: list[tuple[GaussianSet, np.ndarray]], cams: SceneCameras, cfg: CompactConfig
+) -> list[_Part]:
+    """Background and objects (``gsets``: (SH-cut set, per-Gaussian degrees)) with their scoring cameras."""
+    (g, need), rest = gsets[0], gsets[1:]
+    parts = [_Part("background", g, cams.viewmats, np.zeros(g.num, bool), np.ones(g.num, bool), need)]
+    for oid, (g, need) in zip(world.object_ids, rest):
+        if g.num:
+            lo, hi = g.means.min(0).astype(np.float64), g.means.max(0).astype(np.float64)
+        else:
+            lo = hi = np.zeros(3)
+        vm = sphere_cameras(0.5 * (lo + hi), cams.radius, cfg.object_views, up=cams.up)
+        parts.append(_Part(f"object_{oid}", g, vm, hull_vertices(g), np.ones(g.num, bool), need))
+    return parts
+
+
+def _score(part: _Part, cams: SceneCameras, bg) -> tuple[np.ndarray, np.ndarray]:
+    """(weight max [N], removal error per view [N]) of the part's kept Gaussians (NaN where removed)."""
+    imp = gaussian_importance(
+        part.kept(),
+        part.viewmats,
+        cams.Ks[np.zeros(len(part.viewmats), np.int64)],
+        cams.width,
+        cams.height,
+        background=bg,
+    )
+    w, e = np.full(part.g.num, np.nan), np.full(part.g.num, np.nan)
+    w[part.keep] = imp.weight_max
+    e[part.keep] = imp.error_sum / max(imp.num_cameras, 1)
+    return w, e
+
+
+def _table_meta(world: World) -> dict:
+    """``{"table": ...}`` when the world has no table bounds in its metadata but the runtime can derive them
+    from the geometry (stored so that pruning cannot move them); else ``{}``."""
+    if "table" in world.metadata or not world.num_objects:
+        return {}
+    from dsg_gym.world_model import WorldModel
+
+    try:
+        t = WorldModel.from_world(world).table
+    except ValueError:
+        return {}
+    return {"table": {"bounds": [[t.xmin, t.ymin, t.z], [t.xmax, t.ymax, t.z]], "top_z": t.z}}
+
+
+def _background_color(world: World) -> tuple[float, float, float]:
+    bg = world.metadata.get("background", (0.0, 0.0, 0.0))
+    try:
+        out = tuple(float(v) for v in bg)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != 3 or not all(math.isfinite(v) for v in out):
+        raise ValueError(f"world metadata 'background' must be an RGB triple, got {bg!r}")
+    return out  # type: ignore[return-value]
+
+
+def _select(parts: list[_Part], errors: list[np.ndarray], n: int, k: int) -> list[tuple[int, int]]:
+    """Up to ``n`` (part, index) pairs to remove, smallest removal error first (ties: part, then index), never
+    two that are among each other's ``k`` nearest kept neighbours: each score assumes the rest stays, so
+    neighbours that cover for each other (a uniformly coloured face) must not go in the same round."""
+    from scipy.spatial import cKDTree
+
+    err, pid, idx, neigh = [], [], [], []
+    for j, (p, e) in enumerate(zip(parts, errors)):
+        kept = np.flatnonzero(p.keep)
+        nb = np.full((p.g.num, k), -1, np.int64)
+        if len(kept) > 1 and k > 0:
+            kk = min(k + 1, len(kept))
+            _, q = cKDTree(p.g.means[kept].astype(np.float64)).query(p.g.means[kept].astype(np.float64), k=kk)
+            nb[kept, : kk - 1] = kept[q.reshape(len(kept), kk)[:, 1:]]
+        neigh.append(nb)
+        i = np.flatnonzero(p.keep & ~p.protected)
+        err.append(e[i])
+        pid.append(np.full(len(i), j))
+        idx.append(i)
+    err, pid, idx = np.concatenate(err), np.concatenate(pid), np.concatenate(idx)
+    locked = [np.zeros(p.g.num, bool) for p in parts]
+    out: list[tuple[int, int]] = []
+    for t in np.lexsort((idx, pid, err)):
+        if len(out) >= n:
+            break
+        j, i = int(pid[t]), int(idx[t])
+        if locked[j][i]:
+            continue
+        out.append((j, i))
+        nb = neigh[j][i]
+        locked[j][nb[nb >= 0]] = True
+    return out
+
+
+def _removed(parts: list[_Part], base: list[np.ndarray], sel: list[tuple[int, int]]) -> None:
+    """Set each part's keep mask to ``base`` minus the selected (part, index) pairs."""
+    for p, b in zip(parts, base):
+        p.keep = b.copy()
+    for j, i in sel:
+        parts[j].keep[i] = False
+
+
+class _Search:
+    """The pruning state: parts with their keep masks, the budget check and the log of rounds."""
+
+    def __init__(self, parts: list[_Part], check, cams: SceneCameras, bg, cfg: CompactConfig, log):
+        self.parts, self.check, self.cams, self.bg, self.cfg, self.log = parts, check, cams, bg, cfg, log
+        self.rounds: list[dict[str, Any]] = []
+        self.res: dict[str, Any] = {}
+        self.refits = 0
+
+    def count(self) -> int:
+        return int(sum(int(p.keep.sum()) for p in self.parts))
+
+    def run_check(self, what: str | None) -> dict[str, Any]:
+        res = self.check(self.parts[0].kept(), [p.kept() for p in self.parts[1:]])
+        if what is not None:
+            self.rounds.append({"kept": self.count(), "what": what, **_brief(res)})
+            self.log(f"{what}: {self.count()} kept; {_fmt(res)}")
+        return res
+
+    def errors(self) -> list[np.ndarray]:
+        return [_score(p, self.cams, self.bg)[1] for p in self.parts]
+
+    def search(self, errors: list[np.ndarray], floor: int) -> None:
+        """Rounds of neighbour-aware removal until the budget breaks (then bisect that round) or ``floor``."""
+        cfg = self.cfg
+        while self.res["ok"] or cfg.fraction is not None:
+            kept = self.count()
+            free = int(sum(int((p.keep & ~p.protected).sum()) for p in self.parts))
+            n_rm = min(math.ceil(cfg.step * kept), kept - floor, free)
+            sel = _select(self.parts, errors, n_rm, cfg.neighbours) if n_rm > 0 else []
+            if not sel:
+                return
+            old = [p.keep for p in self.parts]
+            _removed(self.parts, old, sel)
+            if cfg.fraction is not None:
+                self.rounds.append({"kept": self.count(), "what": "round"})
+            else:
+                res = self.run_check(None)
+                if not res["ok"]:  # bisect the round: the longest prefix (lowest errors first) within budget
+                    lo, hi, best = 0, len(sel), self.res
+                    for _ in range(cfg.bisect_steps):
+                        if hi - lo <= 1:
+                            break
+                        mid = (lo + hi) // 2
+                        _removed(self.parts, old, sel[:mid])
+                        r = self.run_check(None)
+                        lo, hi, best = (mid, hi, r) if r["ok"] else (lo, mid, best)
+                    _removed(self.parts, old, sel[:lo])
+                    self.res = best
+                    self.rounds.append({"kept": self.count(), "what": "bisected", **_brief(best)})
+                    self.log(f"bisected: {self.count()} kept; {_fmt(best)}")
+                    return
+                self.res = res
+                self.rounds.append({"kept": self.count(), "what": "round", **_brief(res)})
+                self.log(f"round: {self.count()} kept; {_fmt(res)}")
+            if self.count() <= floor:
+                return
+            errors = self.errors()
+
+    def refit(self, originals: list[GaussianSet]) -> bool:
+        """Refit every part's survivors to its original renders; kept only if the check passes and improves.
+        Parts are compacted to their survivors (removed rows are dropped for good)."""
+        from train_world.refit import refit
+
+        if self.cfg.fraction is not None:  # no budget search: compare with the pruned state
+            self.res = self.run_check(None)
+
+        cfg, old = self.cfg, [(p.g, p.protected, p.keep, p.sh_need) for p in self.parts]
+        for k, (p, g0) in enumerate(zip(self.parts, originals)):
+            sub = p.kept()
+            floor = np.where(p.protected[p.keep] & (sub.opacities >= 0.2), 0.2001, 0.0) if k else None
+            p.g = refit(
+                sub,
+                g0,
+                p.viewmats,
+                self.cams.Ks[np.zeros(len(p.viewmats), np.int64)],
+                self.cams.width,
+                self.cams.height,
+                steps=cfg.refit_steps,
+                sh_degrees=p.sh_need[p.keep],
+                fit_means=k == 0,
+                min_opacity=floor,
+                seed=self.refits,
+            )
+            p.protected, p.sh_need = p.protected[p.keep], p.sh_need[p.keep]
+            p.keep = np.ones(p.g.num, bool)
+        self.refits += 1
+        res = self.run_check(None)
+        better = (res["ok"] or self.cfg.fraction is not None) and res["psnr_drop"] < self.res["psnr_drop"]
+        self.rounds.append(
+            {"kept": self.count(), "what": "refit" if better else "refit (rejected)", **_brief(res)}
+        )
+        self.log(f"refit{'' if better else ' (rejected)'}: {_fmt(res)}")
+        if better:
+            self.res = res
+        else:
+            for p, (g, prot, keep, need) in zip(self.parts, old):
+                p.g, p.protected, p.keep, p.sh_need = g, prot, keep, need
+        return better
+
+
+def compact_world(
+    world: World,
+    cfg: CompactConfig | None = None,
+    *,
+    capture: str | Path | None = None,
+    log: Callable[[str], None] | None = None,
+) -> tuple[World, dict[str, Any]]:
+    """The compacted world and a report (module docstring). ``capture``: also measure the PSNR drop on its
+    test states with ``dsg-eval`` (and use the original's measured PSNR as the reference)."""
+    cfg = cfg or CompactConfig()
+    log = log or (lambda _msg: None)
+    t_start = time.perf_counter()
+    bg_color = _background_color(world)
+    vm, Ks, W, H = _capture_cameras(world)
+    fallback = np.median(world.background.means, 0) if world.background.num else None
+    cams = scene_cameras(vm, Ks, W, H, rings=cfg.rings, per_ring=cfg.per_ring, fallback_target=fallback)
+    originals = [world.background] + [world.objects[i].gaussians for i in world.object_ids]
+    total0 = sum(g.num for g in originals)
+    timings: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="dsg-compact-") as tmp:
+        t = time.perf_counter()
+        check = (
+            CaptureCheck(world, Path(capture), cams, bg_color, cfg, Path(tmp))
+            if capture is not None
+            else SelfCheck(world, cams, bg_color, cfg, cfg.reference_psnr)
+        )
+        timings["reference_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        parts = _parts(world, [truncate_sh(g, cfg.sh_tolerance) for g in originals], cams, cfg)
+        scores = [_score(p, cams, bg_color) for p in parts]
+        for p, (w, _) in zip(parts, scores):
+            p.keep = (w >= cfg.min_weight) | p.protected
+        timings["scoring_s"] = time.perf_counter() - t
+        s = _Search(parts, check, cams, bg_color, cfg, log)
+        s.res = s.run_check("sh+invisible")
+        sh_truncated = True
+        if not (s.res["ok"] or cfg.fraction is not None):  # the SH cut alone breaks the budget: keep SH
+            sh_truncated = False
+            for p, g in zip(parts, originals):
+                p.g, p.sh_need = g, np.full(g.num, g.sh_degree)
+            s.res = s.run_check("invisible (all SH bands)")
+            if not s.res["ok"]:
+                for p in parts:
+                    p.keep[:] = True
+                s.res = s.run_check("nothing removed")
+        floor = math.ceil((cfg.fraction if cfg.fraction is not None else cfg.min_fraction) * total0)
+        t = time.perf_counter()
+        s.search([e for _, e in scores], floor)
+        for cycle in range(cfg.refit_cycles if cfg.refit_steps > 0 else 0):
+            if not s.refit(originals) or cycle == cfg.refit_cycles - 1 or not s.res["ok"]:
+                break
+            s.search(s.errors(), floor)
+        if cfg.fraction is not None:
+            s.res = s.run_check("final")
+        timings["search_s"] = time.perf_counter() - t
+    res = s.res
+    bg_new, objs_new = parts[0].kept(), [p.kept() for p in parts[1:]]
+    total1 = bg_new.num + sum(g.num for g in objs_new)
+    summary = {
+        "gaussians_before": total0,
+        "gaussians_after": total1,
+        "reduction": total0 / max(total1, 1),
+        "mode": "capture" if capture is not None else "self",
+        "psnr_drop": res["psnr_drop"],
+        "sh_truncated": sh_truncated,
+        "refits": s.refits,
+        "options": dataclasses.asdict(cfg),
+    }
+    meta = {"compacted": summary, **_table_meta(world)}
+    if "num_gaussians" in world.metadata:
+        meta["num_gaussians"] = total1
+    report = {
+        **{k: v for k, v in summary.items() if k != "options"},
+        "parts": {
+            p.name: {
+                "before": int(g.num),
+                "after": int(p.keep.sum()),
+                "protected": int(p.protected.sum()),
+                "sh_degree_before": int(g.sh_degree),
+                "sh_degree_after": int(p.g.sh_degree),
+            }
+            for p, g in zip(parts, originals)
+        },
+        "check": {k: v for k, v in res.items() if k != "ok"},
+        "within_budget": bool(res["ok"]),
+        "rounds": s.rounds,
+        "cameras": {
+            "capture": cams.num_capture,
+            "orbit": len(cams) - cams.num_capture,
+            "radius": cams.radius,
+            "elevations_deg": list(cams.elevations_deg),
+            "object_views": cfg.object_views,
+            "validation_views": len(getattr(check, "self_check", check).idx),
+            "image_size": [cams.width, cams.height],
+        },
+        "options": dataclasses.asdict(cfg),
+        "time_s": {**timings, "total_s": time.perf_counter() - t_start},
+    }
+    return with_parts(world, bg_new, objs_new, meta), report
+
+
+def _brief(res: dict[str, Any]) -> dict[str, Any]:
+    return {k: res[k] for k in ("psnr_drop", "test_psnr_drop", "self_psnr") if k in res}
+
+
+def _fmt(res: dict[str, Any]) -> str:
+    s = f"PSNR drop {res['psnr_drop']:.3f} dB (predicted {res['predicted_psnr_drop']:.3f}"
+    if res.get("test_psnr_drop") is not None:
+        s += f", measured on the test states {res['test_psnr_drop']:.3f}"
+    return s + f"), self PSNR {res['self_psnr']:.2f} dB"
+
+
+# --------------------------------------------------------------------------------------------- CLI
+_OPTIONS = (  # (CompactConfig field, type, help); each becomes --field-name
+    ("max_psnr_drop", float, "PSNR budget in dB"),
+    ("reference_psnr", float, "without --capture: the world's assumed PSNR against ground truth (dB)"),
+    ("fraction", float, "keep this fraction of the Gaussians (no budget search)"),
+    ("min_weight", float, "invisible below this accumulated weight (pixels) in every plausible view"),
+    ("sh_tolerance", float, "largest colour change allowed when dropping SH bands"),
+    ("rings", int, "orbit rings of plausible cameras"),
+    ("per_ring", int, "cameras per orbit ring"),
+    ("object_views", int, "sphere cameras per object"),
+    ("step", float, "fraction of the Gaussians removed per round"),
+    ("min_fraction", float, "never keep fewer than this fraction"),
+    ("neighbours", int, "a removed Gaussian protects this many nearest neighbours for the rest of its round"),
+    ("refit_steps", int, "Adam steps of each refit of the survivors to the original renders (0: no refit)"),
+    ("refit_cycles", int, "how many times to refit (each followed by more pruning, except the last)"),
+    ("validation_views", int, "plausible cameras used for the self-consistency check"),
+    ("bisect_steps", int, "bisection steps in the round that breaks the budget"),
+)
+
+
+def _parser() -> argparse.ArgumentParser:
+    d = CompactConfig()
+    p = argparse.ArgumentParser(
+        prog="dsg-compact",
+        description=__doc__.split("\n")[0].split(": ", 1)[1],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("world", type=Path, help="world file to compact")
+    p.add_argument("--out", type=Path, required=True, help="compacted world file (written atomically)")
+    p.add_argument(
+        "--capture", type=Path, help="also measure the drop on this capture's test states (dsg-eval)"
+    )
+    for name, typ, text in _OPTIONS:
+        p.add_argument("--" + name.replace("_", "-"), type=typ, default=getattr(d, name), help=text)
+    p.add_argument("--report", type=Path, help="also write the JSON report here")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = _parser().parse_args(argv)
+    try:
+        cfg = CompactConfig(**{name: getattr(a, name) for name, _, _ in _OPTIONS})
+        if not a.world.is_file():
+            raise ValueError(f"{a.world}: world file does not exist")
+        if a.capture is not None and not (a.capture / "scene.json").is_file():
+            raise ValueError(f"{a.capture}: not a capture folder (no scene.json)")
+        world = load_world(a.world)
+        log = None if a.quiet else (lambda msg: print(f"dsg-compact: {msg}", file=sys.stderr, flush=True))
+        out, report = compact_world(world, cfg, capture=a.capture, log=log)
+        from train_world.world_writer import write_world
+
+        write_world(a.out, out)
+    except (ValueError, OSError) as e:
+        print(f"dsg-compact: error: {e}", file=sys.stderr)
+        return 2
+    report = {
+        "input": str(a.world),
+        "output": str(a.out),
+        "bytes_before": a.world.stat().st_size,
+        "bytes_after": a.out.stat().st_size,
+        **report,
+    }
+    text = json.dumps(report, indent=2)
+    if a.report is not None:
+        from train_world.data.format import atomic_write_bytes
+
+        atomic_write_bytes(a.report, (text + "\n").encode("utf-8"))
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "env_step",
         "size": [args.size, args.size],
         "obs": ["rgb", "mask"],
-        "world": args.world or "bundled (geometry world of two_blocks)",
+        "world": args.world or "bundled (assets/worlds/two_blocks_dsg.dsgworld)",
         "incremental": inc,
         "full": full,
         "mujoco_egl_rgb_seg": mj,

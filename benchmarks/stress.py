@@ -296,7 +296,7 @@ def env_long_run(steps: int, world: str, progress: bool, warmup: int = 500) -> d
     return {
         "world": "two-box test world (tests/_worlds.py)"
         if world == "boxes"
-        else "bundled default_geom.dsgworld",
+        else "bundled world (dsg_gym.envs.dsg_world.DEFAULT_WORLD)",
         "size": [size, size],
         "obs": list(obs_keys),
         "steps": steps,

@@ -3,7 +3,7 @@
 Python::
 
     from dsg_gym.export import export_world_usd, export_world_ply
-    export_world_usd("assets/worlds/default_geom.dsgworld", "world.usdc")            # objects at state1
+    export_world_usd("assets/worlds/two_blocks_dsg.dsgworld", "world.usdc")          # objects at state1
     export_world_usd(world_model, "w.usda", poses="state2")       # or [K,4,4] / [K,7] / a poses file
     export_world_usd(world_model, "ep", episode="ep.npz")                              # -> ep.usdc, animated
     export_world_ply(world_model, "ply_dir")                    # background.ply + <name>.ply (object frames)

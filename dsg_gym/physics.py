@@ -2,7 +2,10 @@
 
 Every object becomes a body with a free joint whose collision geom is the convex hull of (a filtered subset
 of) its Gaussian means (a mesh geom: MuJoCo builds the hull of a mesh's vertices itself); the table is a box
-whose top is the world's table height, with a floor plane one metre below to catch what falls off. Poses
+whose top is the world's table height, with a floor plane one metre below to catch what falls off. A trained
+object's Gaussians can reach a few millimetres into the table it stood on (contact blur, shadows); hull points
+that lie below the table top in a captured state where the object rests on the table (its lowest point within
+``rest_tolerance`` of the top) are lifted onto the top, so the captured states are contact-free. Poses
 are set by *teleporting* the free joints through ``qpos`` (never mocap bodies, which do not collide with static
 geometry). Everything is deterministic: the same query gives the same answer bit for bit.
 """
@@ -82,6 +85,8 @@ class PhysicsProxy:
             the Gaussians' scale for trained worlds, whose means lie slightly inside the surface).
         friction: sliding friction of all geoms.
         timestep: simulation step (seconds) used by :meth:`settle`.
+        rest_tolerance: an object whose lowest hull point is at most this far (metres) below the table top
+            in a captured state rests there; its hull is lifted onto the top (module docstring).
     """
 
     def __init__(
@@ -92,12 +97,19 @@ class PhysicsProxy:
         expand: float = 0.0,
         friction: float = 0.8,
         timestep: float = 0.002,
+        rest_tolerance: float = 0.03,
     ):
         self.world = world
         self.num_objects = world.num_objects
         self.hulls: list[np.ndarray] = []
-        for obj in world.objects:
+        for k, obj in enumerate(world.objects):
             pts = _hull_points(obj.means, obj.opacities, max_hull_points)
+            for P in world.states.values():  # lift what a resting object pushes into the table
+                w = pts @ P[k, :3, :3].T + P[k, :3, 3]
+                low = w[:, 2] < world.table.z
+                if low.any() and w[:, 2].min() >= world.table.z - rest_tolerance:
+                    w[low, 2] = world.table.z
+                    pts = (w - P[k, :3, 3]) @ P[k, :3, :3]
             if expand:
                 c = pts.mean(axis=0)
                 d = pts - c

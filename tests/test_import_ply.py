@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import dsg_gym  # noqa: F401  (registers DSGWorld-v0)
-from dsg_gym.envs.dsg_world import DEFAULT_WORLD
+from dsg_gym.envs.dsg_world import GEOMETRY_WORLD as DEFAULT_WORLD  # a base world without identity features
 from dsg_gym.export import export_world_ply
 from dsg_gym.io import PlyFormatError, read_ply, write_ply
 from dsg_gym.scene_renderer import SceneRenderer

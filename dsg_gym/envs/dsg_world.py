@@ -22,10 +22,16 @@ from ..poses import (
 from ..world_model import Cameras, WorldModel
 from .tasks import RearrangementTask, TaskParams
 
-__all__ = ["DSGWorldEnv", "DEFAULT_WORLD", "load_default_world"]
+__all__ = ["DSGWorldEnv", "DEFAULT_WORLD", "GEOMETRY_WORLD", "load_default_world"]
 
-#: the bundled world: a geometry world of ``assets/scenes/two_blocks.json`` (``train_world.geom_world``)
-DEFAULT_WORLD = Path(__file__).resolve().parents[2] / "assets" / "worlds" / "default_geom.dsgworld"
+_ASSETS = Path(__file__).resolve().parents[2] / "assets" / "worlds"
+#: the bundled world: DSG-World trained on the synthetic ``two_blocks`` capture (how to reproduce it:
+#: README, "The bundled world")
+DEFAULT_WORLD = _ASSETS / "two_blocks_dsg.dsgworld"
+#: the geometry world of the same scene (Gaussians sampled on the MuJoCo geoms: the ideal reconstruction;
+#: ``python -m train_world.geom_world``), used by tests and as a reference
+GEOMETRY_WORLD = _ASSETS / "default_geom.dsgworld"
+_REBUILD = "see README, 'The bundled world', for the commands that rebuild it"
 OBS_KEYS = ("rgb", "mask", "depth", "poses")
 ACTION_MODES = ("delta", "se3", "absolute")
 COLLISION_MODES = ("reject", "settle", "ignore")
@@ -35,15 +41,14 @@ _WORLD_CACHE: dict[str, WorldModel] = {}
 
 def load_default_world() -> WorldModel:
     """The bundled world (cached per process). If the asset is missing or unreadable this raises a
-    ValueError; regenerate it with ``python -m train_world.geom_world --out assets/worlds/default_geom.dsgworld``
-    (``dsg_gym`` never imports ``train_world``)."""
+    ValueError naming it (``dsg_gym`` never imports ``train_world``; README, "The bundled world", has the
+    commands that rebuild it)."""
     key = str(DEFAULT_WORLD)
     if key not in _WORLD_CACHE:
         try:
             _WORLD_CACHE[key] = WorldModel.load(DEFAULT_WORLD).without_features()
         except ValueError as e:
-            raise ValueError(f"the bundled world does not load ({e}); regenerate it with "
-                             "`python -m train_world.geom_world --out assets/worlds/default_geom.dsgworld`") from e
+            raise ValueError(f"the bundled world does not load ({e}); {_REBUILD}") from e
     return _WORLD_CACHE[key]
 
 
@@ -133,7 +138,7 @@ class DSGWorldEnv(gym.Env):
 
     | kwarg | default | meaning |
     | --- | --- | --- |
-    | ``world`` | ``None`` | ``None`` (the bundled geometry world of the ``two_blocks`` scene), a world file path (loaded without its per-Gaussian identity features, which the runtime never uses: masks come from object labels), or a ``WorldModel`` (used as given) |
+    | ``world`` | ``None`` | ``None`` (the bundled world: DSG-World trained on the ``two_blocks`` capture), a world file path (loaded without its per-Gaussian identity features, which the runtime never uses: masks come from object labels), or a ``WorldModel`` (used as given) |
     | ``width``, ``height`` | 128, 128 | observation image size (pixels) |
     | ``cameras`` | ``None`` | ``None`` = capture camera 0; an int (capture camera index); a look-at dict ``{"eye", "target", "up"?, "fovy_deg"?}``; or a **list** of these for V views (images get a leading V axis) |
     | ``obs`` | ``("rgb", "mask", "poses")`` | any of ``rgb``, ``mask``, ``depth``, ``poses``; only these are rendered (``goal`` is always included) |

@@ -42,10 +42,7 @@ def train_single_state(
     from train_world.recon.presets import TrainConfig
     from train_world.recon.trainer import Trainer
 
-    p = scaled_preset(preset, iterations)
-    if max_gaussians is not None:
-        p = dataclasses.replace(p, max_gaussians=int(max_gaussians))
-    cfg = TrainConfig(preset=p, seed=seed, state=state)
+    cfg = TrainConfig(preset=scaled_preset(preset, iterations, max_gaussians), seed=seed, state=state)
     tr = Trainer(load_training_data(capture, cfg), cfg)
     tr.train(progress=progress)
     tr.write_world(out, {"baseline": "a: single-state segmentation"})

@@ -39,10 +39,14 @@ _SCHEDULE = (
 )
 
 
-def scaled_preset(name: str, iterations: int | None = None) -> Preset:
+def scaled_preset(name: str, iterations: int | None = None, max_gaussians: int | None = None) -> Preset:
     """Preset ``name``; with ``iterations``, every schedule step count scaled by ``iterations / preset's``
-    (so an opacity reset never lands at the end of a shortened run)."""
+    (so an opacity reset never lands at the end of a shortened run); ``max_gaussians``: the field size cap."""
     p = get_preset(name)
+    if max_gaussians is not None:
+        if max_gaussians < 1000:
+            raise ValueError(f"--max-gaussians must be at least 1000, got {max_gaussians}")
+        p = dataclasses.replace(p, max_gaussians=int(max_gaussians))
     if iterations is None or iterations == p.iterations:
         return p
     f = iterations / p.iterations
@@ -125,11 +129,7 @@ def _parser() -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace):
     from .trainer import DualConfig
 
-    preset = scaled_preset(args.preset, args.iterations)
-    if args.max_gaussians is not None:
-        if args.max_gaussians < 1000:
-            raise ValueError(f"--max-gaussians must be at least 1000, got {args.max_gaussians}")
-        preset = dataclasses.replace(preset, max_gaussians=args.max_gaussians)
+    preset = scaled_preset(args.preset, args.iterations, args.max_gaussians)
     base = TrainConfig(
         preset=preset,
         seed=args.seed,

@@ -28,6 +28,30 @@ from .splat import _numba_raster as R
 
 
 @dataclass(frozen=True)
+class RenderSettings:
+    """Speed/accuracy knobs of the runtime renderer (``DSGWorld-v0``'s ``render_settings``).
+
+    ``alpha_min``: a Gaussian is skipped at a pixel where its alpha is below this (3DGS: 1/255);
+    ``t_min``: a pixel stops compositing once its transmittance would fall below this (3DGS: 1e-4);
+    ``sh_degree``: highest SH degree evaluated (``None``: whatever the world carries).
+    """
+
+    alpha_min: float = R.ALPHA_MIN
+    t_min: float = R.T_MIN
+    sh_degree: int | None = None
+
+    def __post_init__(self):
+        R.check_thresholds(float(self.alpha_min), float(self.t_min))
+        d = self.sh_degree
+        if d is not None and (isinstance(d, bool) or not isinstance(d, (int, np.integer)) or not 0 <= d <= 3):
+            raise ValueError(f"sh_degree must be None or an integer in 0..3, got {d!r}")
+
+    def kwargs(self) -> dict:
+        """Keyword arguments of :class:`SceneRenderer`."""
+        return {"alpha_min": float(self.alpha_min), "t_min": float(self.t_min), "sh_degree": self.sh_degree}
+
+
+@dataclass(frozen=True)
 class RenderOutput:
     """One render of V cameras. ``mask`` ids: 0 background, k the k-th object (1-based)."""
 
@@ -46,13 +70,14 @@ class _Projected:
     rects: np.ndarray
 
 
-def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far) -> _Projected:
+def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
+             alpha_min: float = R.ALPHA_MIN) -> _Projected:
     V, n = viewmats.shape[0], means.shape[0]
     out = _Projected(np.empty((V, n, 2), np.float32), np.empty((V, n, 3), np.float32),
                      np.empty((V, n), np.float32), np.empty((V, n, 2), np.int32), np.empty((V, n, 4), np.int32))
     kernel = P.project_forward if V * n > 20_000 else P.project_forward_serial
     kernel(means, quats, scales, opacities[None], viewmats, Ks, float(width), float(height),
-           float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects)
+           float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects, float(alpha_min))
     return out
 
 
@@ -89,11 +114,21 @@ class SceneRenderer:
         objects: one GaussianSet per object, in the object's own frame.
         viewmats: ``[V, 4, 4]`` world-to-camera (OpenCV), Ks ``[V, 3, 3]``, width, height.
         background_color: RGB behind everything (0..1).
+        alpha_min: a Gaussian is skipped where its alpha is below this (default 1/255, as 3DGS).
+        t_min: a pixel stops compositing once its transmittance would drop below this (default 1e-4).
+        sh_degree: highest SH degree evaluated (``None``: all the Gaussians carry; lower is cheaper
+            and drops view-dependent detail).
+
+    Raising ``alpha_min``/``t_min`` or lowering ``sh_degree`` trades accuracy for speed
+    (``benchmarks/pareto.py`` measures the trade).
     """
 
     def __init__(self, background: GaussianSet, objects: Sequence[GaussianSet], viewmats, Ks, width: int,
                  height: int, background_color=(0.0, 0.0, 0.0), near_plane: float = 0.01,
-                 far_plane: float = 1e10):
+                 far_plane: float = 1e10, alpha_min: float = R.ALPHA_MIN, t_min: float = R.T_MIN,
+                 sh_degree: int | None = None):
+        self._consts = R.make_consts(np.float32, alpha_min, t_min)
+        self.alpha_min, self.t_min = float(alpha_min), float(t_min)
         self.background = background
         self.objects = list(objects)
         self.K = len(self.objects)
@@ -110,12 +145,16 @@ class SceneRenderer:
         self._obj_quats = cat("quats", (0, 4))
         self._obj_scales = cat("scales", (0, 3))
         self._obj_opac = cat("opacities", (0,))
+        RenderSettings(alpha_min, t_min, sh_degree)  # validates
         deg = max([background.sh_degree] + [o.sh_degree for o in self.objects])
+        if sh_degree is not None:
+            deg = min(deg, int(sh_degree))
         nb_ = (deg + 1) ** 2
         self._sh_degree = deg
         self._obj_sh = np.zeros((len(self._obj_means), nb_, 3), np.float32)
         for k, o in enumerate(self.objects):
-            self._obj_sh[self._slices[k]:self._slices[k + 1], : o.sh.shape[1]] = o.sh
+            m = min(nb_, o.sh.shape[1])
+            self._obj_sh[self._slices[k]:self._slices[k + 1], :m] = o.sh[:, :m]
         self._obj_label = np.concatenate([np.full(n, k + 1, np.int64) for k, n in enumerate(sizes)]) \
             if sizes else np.zeros(0, np.int64)
         self.set_cameras(viewmats, Ks, width, height)
@@ -140,11 +179,13 @@ class SceneRenderer:
         bg = self.background
         self._bg = _project(np.ascontiguousarray(bg.means, np.float32), np.ascontiguousarray(bg.quats, np.float32),
                             np.ascontiguousarray(bg.scales, np.float32), np.ascontiguousarray(bg.opacities, np.float32),
-                            self.viewmats, self.Ks, self.width, self.height, self.near, self.far)
+                            self.viewmats, self.Ks, self.width, self.height, self.near, self.far,
+                            self.alpha_min)
         self._bg_bins = _bins(self._bg, self.tiles_x, self.tiles_y)
         self._bg_rgb = np.empty((self.V, bg.num, 3), np.float32)
         sh = np.zeros((bg.num, (self._sh_degree + 1) ** 2, 3), np.float32)
-        sh[:, : bg.sh.shape[1]] = bg.sh
+        m = min(sh.shape[1], bg.sh.shape[1])
+        sh[:, :m] = bg.sh[:, :m]
         for v in range(self.V):
             I.sh_to_rgb(bg.means, np.eye(3), self._campos[v], sh, self._sh_degree, self._bg_rgb[v])
         self._state = None  # (channels key, poses, object arrays, buffers)
@@ -184,7 +225,7 @@ class SceneRenderer:
             I.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
                               st["quats"][s:e])
             pr = _project(st["means"][s:e], st["quats"][s:e], self._obj_scales[s:e], self._obj_opac[s:e],
-                          self.viewmats, self.Ks, self.width, self.height, self.near, self.far)
+                          self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min)
             for f in ("means2d", "conics", "depths", "radii", "rects"):
                 getattr(st["proj"], f)[:, s:e] = getattr(pr, f)
             rgb = np.zeros((self.V, e - s, 3), np.float32)
@@ -232,7 +273,7 @@ class SceneRenderer:
             I.composite_merged(tiles, a.means2d, a.conics, np.ascontiguousarray(self.background.opacities, np.float32),
                                st["bg_colors"], a.rects, a.depths, self._bg_bins[0], self._bg_bins[1],
                                b.means2d, b.conics, self._obj_opac, st["colors"], b.rects, b.depths, b_off, b_gauss,
-                               self.tiles_x, self.tiles_y, self.width, self.height, R.make_consts(np.float32),
+                               self.tiles_x, self.tiles_y, self.width, self.height, self._consts,
                                st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)

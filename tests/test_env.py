@@ -181,9 +181,20 @@ def test_bad_input_is_a_value_error_and_changes_nothing(tmp_path):
         with pytest.raises(ValueError, match=str(path.name)):
             gym.make("DSGWorld-v0", world=str(path))
     for kw in ({"width": 0}, {"collision": "bounce"}, {"action_mode": "joint"}, {"render_mode": "human"},
-               {"max_translation": float("nan")}, {"cameras": [{"eye": [0, 0, 1]}]}, {"task": {"gap": -1}}):
+               {"max_translation": float("nan")}, {"cameras": [{"eye": [0, 0, 1]}]}, {"task": {"gap": -1}},
+               {"render_settings": {"alpha_min": 2.0}}, {"render_settings": {"tile": 8}},
+               {"render_settings": "fast"}):
         with pytest.raises(ValueError):
             DSGWorldEnv(**kw)
+
+
+def test_render_settings_reach_the_renderer(boxes):
+    base = DSGWorldEnv(world=boxes, width=32, height=32)
+    fast = DSGWorldEnv(world=boxes, width=32, height=32, render_settings={"t_min": 0.2, "sh_degree": 0})
+    assert fast.renderer.t_min == 0.2 and fast.renderer._sh_degree == 0
+    a, _ = base.reset(seed=1)
+    b, _ = fast.reset(seed=1)
+    assert np.array_equal(a["poses"], b["poses"]) and not np.array_equal(a["rgb"], b["rgb"])
 
 
 @pytest.mark.parametrize("mode", ["sync", "async"])

@@ -149,3 +149,76 @@ def test_scene_renderer_colours_match_moved_gaussians_with_rotated_sh(setup):
             ) + 0.5, 0.0).numpy()
             assert np.abs(got - plain).max() > 1e-2
         start += g.num
+
+
+def test_render_settings_defaults_and_incremental_exactness(setup):
+    """Explicit default settings render exactly like no settings; non-default thresholds keep
+    incremental == full and change the image only a little."""
+    from dsg_gym.scene_renderer import RenderSettings
+
+    bg, objs, vm, K, W, H = setup
+    poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
+    ref = SceneRenderer(bg, objs, vm, K, W, H).render(poses, depth=True)
+    same = SceneRenderer(bg, objs, vm, K, W, H, **RenderSettings().kwargs()).render(poses, depth=True)
+    assert np.array_equal(ref.rgb, same.rgb) and np.array_equal(ref.alpha, same.alpha)
+    fast = SceneRenderer(bg, objs, vm, K, W, H, alpha_min=0.02, t_min=0.01)
+    fast.render(poses, depth=True)
+    moved = poses.copy()
+    moved[1] = moved[1] @ _pose(0.03, -0.02, 0.4, z=0.0)
+    inc = fast.render(moved, depth=True)
+    full = fast.render(moved, depth=True, incremental=False)
+    for name in ("rgb", "mask", "depth", "alpha"):
+        assert np.array_equal(getattr(inc, name), getattr(full, name)), name
+    ref2 = SceneRenderer(bg, objs, vm, K, W, H).render(moved, depth=True)
+    diff = np.abs(inc.rgb.astype(int) - ref2.rgb.astype(int))
+    assert 0 < diff.max() and diff.mean() < 8.0
+
+
+def test_alpha_min_and_t_min_take_effect():
+    """One Gaussian: no pixel gets an alpha below alpha_min; a stack of opaque ones stops at t_min."""
+    W = H = 32
+    vm = np.eye(4)[None]
+    K = np.array([[[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]]])
+    one = GaussianSet(means=np.array([[0.0, 0.0, 1.0]], np.float32), quats=np.array([[1.0, 0, 0, 0]], np.float32),
+                      scales=np.full((1, 3), 0.1, np.float32), opacities=np.array([0.9], np.float32),
+                      sh=np.zeros((1, 1, 3), np.float32))
+    a_def = SceneRenderer(one, [], vm, K, W, H).render(np.zeros((0, 4, 4))).alpha
+    a_cut = SceneRenderer(one, [], vm, K, W, H, alpha_min=0.1).render(np.zeros((0, 4, 4))).alpha
+    assert 0 < a_def[a_def > 0].min() < 0.05
+    assert a_cut[a_cut > 0].min() >= 0.1 - 1e-6
+    assert (a_cut > 0).sum() < (a_def > 0).sum()
+    n = 6
+    stack = GaussianSet(means=np.array([[0.0, 0.0, 1.0 + 0.1 * i] for i in range(n)], np.float32),
+                        quats=np.tile(np.array([[1.0, 0, 0, 0]], np.float32), (n, 1)),
+                        scales=np.full((n, 3), 1.0, np.float32), opacities=np.full(n, 0.6, np.float32),
+                        sh=np.zeros((n, 1, 3), np.float32))
+    for t_min in (1e-4, 0.05, 0.3):
+        a = SceneRenderer(stack, [], vm, K, W, H, t_min=t_min).render(np.zeros((0, 4, 4))).alpha
+        assert a.max() <= 1.0 - t_min + 1e-6 and a.max() > 1.0 - 2.5 * t_min - 0.4 ** n
+
+
+def test_sh_degree_cap_equals_truncated_world(setup):
+    bg, objs, vm, K, W, H = setup
+    poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
+    capped = SceneRenderer(bg, objs, vm, K, W, H, sh_degree=0).render(poses)
+
+    def dc(g):
+        return GaussianSet(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, sh=g.sh[:, :1])
+
+    trunc = SceneRenderer(dc(bg), [dc(o) for o in objs], vm, K, W, H).render(poses)
+    full = SceneRenderer(bg, objs, vm, K, W, H).render(poses)
+    assert np.array_equal(capped.rgb, trunc.rgb)
+    assert not np.array_equal(capped.rgb, full.rgb)
+
+
+@pytest.mark.parametrize("kw, msg", [({"alpha_min": 0.0}, "alpha_min"), ({"alpha_min": 1.0}, "alpha_min"),
+                                     ({"t_min": -0.1}, "t_min"), ({"t_min": float("nan")}, "t_min"),
+                                     ({"sh_degree": 4}, "sh_degree"), ({"sh_degree": 1.5}, "sh_degree")])
+def test_bad_render_settings_rejected(setup, kw, msg):
+    from dsg_gym.scene_renderer import RenderSettings
+
+    bg, objs, vm, K, W, H = setup
+    with pytest.raises(ValueError, match=msg):
+        SceneRenderer(bg, objs, vm, K, W, H, **kw)
+    with pytest.raises(ValueError, match=msg):
+        RenderSettings(**kw)

@@ -150,7 +150,7 @@ def _tile_scores(
             cb = conics[c, g, 1]
             cc_ = conics[c, g, 2] * half
             o = opacities[0, g]
-            logo = math.log(np.float64(o) * 255.0)
+            logo = math.log(np.float64(o) / np.float64(amin))
             smax = zero + np.float32(logo * 1.0001 + 1e-4)
             y0 = max(rects[c, g, 2], py0) - py0
             y1 = min(rects[c, g, 3], py0 + ph - 1) - py0

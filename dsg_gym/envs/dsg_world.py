@@ -151,6 +151,7 @@ class DSGWorldEnv(gym.Env):
     | ``render_mode`` | ``None`` | ``"rgb_array"``: ``render()`` returns uint8 ``(render_height, render_width * V, 3)`` |
     | ``render_width``, ``render_height`` | 256, 256 | size of ``render()`` images |
     | ``background_color`` | ``(0, 0, 0)`` | RGB in [0, 1] behind all Gaussians |
+    | ``render_settings`` | ``RenderSettings()`` | renderer speed/accuracy knobs (:class:`~dsg_gym.scene_renderer.RenderSettings` or a dict of its fields: ``alpha_min``, ``t_min``, ``sh_degree``); ``benchmarks/pareto.py`` measures their trade |
     | ``max_episode_steps`` | ``None`` | internal truncation (``gymnasium.make`` adds a ``TimeLimit`` of 200 steps anyway) |
 
     ## Action space
@@ -209,6 +210,7 @@ class DSGWorldEnv(gym.Env):
         render_height: int = 256,
         background_color=(0.0, 0.0, 0.0),
         max_episode_steps: int | None = None,
+        render_settings=None,
     ):
         super().__init__()
         from ..physics import PhysicsProxy  # MuJoCo; the renderer (numba) is imported below
@@ -237,6 +239,18 @@ class DSGWorldEnv(gym.Env):
         bgc = np.asarray(background_color, dtype=np.float64)
         if bgc.shape != (3,) or not np.all(np.isfinite(bgc)) or bgc.min() < 0 or bgc.max() > 1:
             raise ValueError(f"background_color must be 3 numbers in [0, 1], got {background_color!r}")
+        from ..scene_renderer import RenderSettings
+
+        if render_settings is None:
+            render_settings = RenderSettings()
+        elif isinstance(render_settings, Mapping):
+            bad = set(render_settings) - {"alpha_min", "t_min", "sh_degree"}
+            if bad:
+                raise ValueError(f"render_settings: unknown keys {sorted(bad)} (alpha_min, t_min, sh_degree)")
+            render_settings = RenderSettings(**render_settings)
+        elif not isinstance(render_settings, RenderSettings):
+            raise ValueError(f"render_settings must be a RenderSettings or a dict, got {type(render_settings).__name__}")
+        self.render_settings = render_settings
         if isinstance(task, Mapping):
             task = TaskParams(**task)
         elif task is not None and not isinstance(task, TaskParams):
@@ -288,7 +302,7 @@ class DSGWorldEnv(gym.Env):
         w = self.world
         return SceneRenderer(
             w.background, list(w.objects), cams.viewmats, cams.Ks, cams.width, cams.height,
-            background_color=self.background_color,
+            background_color=self.background_color, **self.render_settings.kwargs(),
         )  # fmt: skip
 
     @property

@@ -95,7 +95,7 @@ def _cov2d(j00, j02, j11, j12, m00, m01, m02, m10, m11, m12, m20, m21, m22):
 
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _project_one(c, i, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                 means2d, conics, depths, radii, rects):
+                 means2d, conics, depths, radii, rects, alpha_min):
     """Project Gaussian i into camera c (the body of ``project_forward``)."""
     Co = opacities.shape[0]
     radii[c, i, 0] = 0
@@ -151,10 +151,10 @@ def _project_one(c, i, means, quats, scales, opacities, viewmats, Ks, width, hei
     conics[c, i, 0] = sc * idet
     conics[c, i, 1] = -sb * idet
     conics[c, i, 2] = sa * idet
-    # Opacity-aware extent: alpha >= 1/255  <=>  d^T conic d <= 2 ln(255 o).
-    if o * 255.0 <= 1.0:
+    # Opacity-aware extent: alpha >= alpha_min  <=>  d^T conic d <= 2 ln(o / alpha_min).
+    if o <= alpha_min:
         return
-    t = 2.0 * math.log(o * 255.0)
+    t = 2.0 * math.log(o / alpha_min)
     ex = math.sqrt(t * sa)
     ey = math.sqrt(t * sc)
     # Pixel p is visited when its centre p + 0.5 lies within [u - ex, u + ex] (+1 px margin).
@@ -174,7 +174,7 @@ def _project_one(c, i, means, quats, scales, opacities, viewmats, Ks, width, hei
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                    means2d, conics, depths, radii, rects):
+                    means2d, conics, depths, radii, rects, alpha_min=ALPHA_MIN):
     """Project N Gaussians into C cameras; see the module docstring for the outputs.
 
     means [N,3], quats [N,4] wxyz, scales [N,3], opacities [Co,N] (Co in {1, C}),
@@ -185,18 +185,18 @@ def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height
     for ci in nb.prange(viewmats.shape[0] * N):
         c = ci // N
         _project_one(c, ci - c * N, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                     means2d, conics, depths, radii, rects)
+                     means2d, conics, depths, radii, rects, alpha_min)
 
 
 @nb.njit(cache=True, fastmath=_FASTMATH)
 def project_forward_serial(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                           means2d, conics, depths, radii, rects):
+                           means2d, conics, depths, radii, rects, alpha_min=ALPHA_MIN):
     """``project_forward`` on one thread: cheaper for a few thousand Gaussians (no thread start)."""
     N = means.shape[0]
     for ci in range(viewmats.shape[0] * N):
         c = ci // N
         _project_one(c, ci - c * N, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                     means2d, conics, depths, radii, rects)
+                     means2d, conics, depths, radii, rects, alpha_min)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)

@@ -37,10 +37,22 @@ T_MIN = 1e-4
 _FASTMATH = {"nsz", "arcp"}
 
 
-def make_consts(dtype) -> np.ndarray:
+def make_consts(dtype, alpha_min: float = ALPHA_MIN, t_min: float = T_MIN) -> np.ndarray:
     """Constants of the compositing kernels in the working dtype (float32 kernels stay float32):
-    (alpha max, alpha min, T min, 0.5, 1, 0)."""
-    return np.array([ALPHA_MAX, ALPHA_MIN, T_MIN, 0.5, 1.0, 0.0], dtype=dtype)
+    (alpha max, alpha min, T min, 0.5, 1, 0). ``alpha_min`` (a Gaussian is skipped at a pixel where its
+    alpha is below it; the projection's footprint must use the same value) and ``t_min`` (a pixel is
+    finished once its transmittance would drop below it) trade accuracy for speed; the defaults are
+    3DGS's 1/255 and 1e-4."""
+    check_thresholds(alpha_min, t_min)
+    return np.array([ALPHA_MAX, alpha_min, t_min, 0.5, 1.0, 0.0], dtype=dtype)
+
+
+def check_thresholds(alpha_min: float, t_min: float) -> None:
+    """ValueError unless 0 < alpha_min < ALPHA_MAX and 0 <= t_min < 1 (both finite)."""
+    if not (math.isfinite(alpha_min) and 0.0 < alpha_min < ALPHA_MAX):
+        raise ValueError(f"alpha_min must lie in (0, {ALPHA_MAX}), got {alpha_min!r}")
+    if not (math.isfinite(t_min) and 0.0 <= t_min < 1.0):
+        raise ValueError(f"t_min must lie in [0, 1), got {t_min!r}")
 
 
 def balanced_order(n: int) -> np.ndarray:
@@ -224,8 +236,8 @@ def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1
     D = col.shape[0]
     ca = conic_a * half
     cc_ = conic_c * half
-    logo = math.log(np.float64(o) * 255.0)
-    # Beyond this sigma, alpha < 1/255 for sure: skip the exp (the margin covers rounding).
+    logo = math.log(np.float64(o) / np.float64(amin))
+    # Beyond this sigma, alpha < alpha_min for sure: skip the exp (the margin covers rounding).
     smax = zero + np.float32(logo * 1.0001 + 1e-4)  # in the working dtype: no conversion per pixel
     y0 = max(ry0, py0) - py0
     y1 = min(ry1, py0 + ph - 1) - py0
@@ -413,8 +425,8 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
             cb64 = np.float64(cb)
             cc64 = np.float64(conics[c, g, 2])
             o = opacities[co, g]
-            logo = math.log(np.float64(o) * 255.0)
-            # Beyond this sigma, alpha < 1/255 for sure: skip the exp (the margin covers rounding).
+            logo = math.log(np.float64(o) / np.float64(amin))
+            # Beyond this sigma, alpha < alpha_min for sure: skip the exp (the margin covers rounding).
             smax = zero + np.float32(logo * 1.0001 + 1e-4)
             y0 = max(rects[c, g, 2], py0) - py0
             y1 = min(rects[c, g, 3], py0 + ph - 1) - py0

@@ -206,26 +206,32 @@ class PhysicsProxy:
         self._set(p7, full=False)
         d, m = self.data, self.model
         deepest: dict[tuple[int, int], float] = {}
-        for c in d.contact[: d.ncon]:
-            g1, g2 = int(c.geom[0]), int(c.geom[1])
-            o1, o2 = self._obj_of_geom.get(g1), self._obj_of_geom.get(g2)
-            if o1 is None and o2 is None:
-                continue
-            a = TABLE if o1 is None else o1
-            b = TABLE if o2 is None else o2
-            key = (max(a, b), min(a, b)) if TABLE in (a, b) else (min(a, b), max(a, b))
-            if c.dist < -tol:
-                deepest[key] = max(deepest.get(key, 0.0), -float(c.dist))
+        ncon = d.ncon
+        if ncon:
+            con = d.contact  # field arrays over the active contacts (no per-contact Python objects)
+            dist = np.array(con.dist[:ncon], dtype=np.float64)
+            geoms = np.array(con.geom[:ncon], dtype=np.int64).reshape(ncon, 2)
+            for i in np.flatnonzero(dist < -tol):
+                o1, o2 = self._obj_of_geom.get(int(geoms[i, 0])), self._obj_of_geom.get(int(geoms[i, 1]))
+                if o1 is None and o2 is None:
+                    continue
+                a = TABLE if o1 is None else o1
+                b = TABLE if o2 is None else o2
+                key = (max(a, b), min(a, b)) if TABLE in (a, b) else (min(a, b), max(a, b))
+                deepest[key] = max(deepest.get(key, 0.0), -float(dist[i]))
         pairs = tuple(sorted(deepest))
         oob = []
         t = self.world.table
+        rots = quat_to_rotmat(p7[:, 3:7])
         for k in range(self.num_objects):
-            h = self.hull_world(k, p7[k])
+            h = self.hulls[k] @ rots[k].T
+            lo = h[:, :2].min(axis=0) + p7[k, :2]
+            hi = h[:, :2].max(axis=0) + p7[k, :2]
             if (
-                h[:, 0].min() < t.xmin - bounds_tol
-                or h[:, 0].max() > t.xmax + bounds_tol
-                or h[:, 1].min() < t.ymin - bounds_tol
-                or h[:, 1].max() > t.ymax + bounds_tol
+                lo[0] < t.xmin - bounds_tol
+                or hi[0] > t.xmax + bounds_tol
+                or lo[1] < t.ymin - bounds_tol
+                or hi[1] > t.ymax + bounds_tol
             ):
                 oob.append(k)
         dmin = np.inf if distance else np.nan

@@ -29,8 +29,13 @@ __all__ = [
 def quat_normalize(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     """Unit quaternions with ``w >= 0`` (float64); ValueError for a (near-)zero or non-finite one."""
     q = np.asarray(q, dtype=np.float64)
+    if not np.all(np.isfinite(q)):
+        raise ValueError("quaternion is zero or not finite")
+    big = np.abs(q).max(axis=-1, keepdims=True, initial=0.0) > 1e150
+    if np.any(big):  # rescale those first so that the squared norm cannot overflow
+        q = np.where(big, q / np.where(big, np.abs(q).max(axis=-1, keepdims=True), 1.0), q)
     n = np.linalg.norm(q, axis=-1, keepdims=True)
-    if not np.all(np.isfinite(q)) or np.any(n <= eps):
+    if np.any(n <= eps):
         raise ValueError("quaternion is zero or not finite")
     q = q / n
     return np.where(q[..., :1] < 0, -q, q)

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .gaussians import GaussianSet
-from .poses import quat_to_rotmat, rotmat_to_quat
 from .splat import _numba_incremental as I
 from .splat import _numba_project as P
 from .splat import _numba_raster as R
@@ -87,23 +86,24 @@ def _bins(proj: _Projected, tiles_x: int, tiles_y: int):
     return offsets, gauss
 
 
-def _as_pose_matrices(poses, k: int) -> np.ndarray:
+def _rigid(poses, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate poses ``[k, 7]`` (x y z qw qx qy qz) or ``[k, 4, 4]`` (object-to-world) and return
+    (unit quaternions [k,4] with w >= 0, rotations [k,3,3], translations [k,3]), float64."""
     poses = np.asarray(poses, dtype=np.float64)
-    if poses.shape != (k, 4, 4):
-        raise ValueError(f"poses must have shape ({k}, 4, 4), got {poses.shape}")
-    if not np.isfinite(poses).all():
-        bad = int(np.argwhere(~np.isfinite(poses))[0, 0])
-        raise ValueError(f"poses has a non-finite value at object {bad}")
-    return poses
-
-
-def _pose_rotation(Rm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(unit quaternion, its rotation matrix) of a pose's rotation block, orthonormalised (float64)."""
-    u, _, vt = np.linalg.svd(Rm)
-    if np.linalg.det(u @ vt) < 0:
-        raise ValueError("pose rotation has determinant < 0 (a reflection)")
-    q = rotmat_to_quat(u @ vt)
-    return q, quat_to_rotmat(q)
+    q, Rm, t = np.empty((k, 4)), np.empty((k, 3, 3)), np.empty((k, 3))
+    if poses.shape == (k, 7):
+        bad = I.rigid_from_pose7(np.ascontiguousarray(poses), q, Rm, t)
+        if bad >= 0:
+            raise ValueError(f"poses: object {bad} has a non-finite position or a zero/non-finite quaternion")
+    elif poses.shape == (k, 4, 4):
+        bad = I.rigid_from_matrices(np.ascontiguousarray(poses), q, Rm, t)
+        if bad >= 0:
+            if not np.isfinite(poses[bad]).all():
+                raise ValueError(f"poses has a non-finite value at object {bad}")
+            raise ValueError(f"pose rotation of object {bad} has determinant <= 0 (a reflection or degenerate)")
+    else:
+        raise ValueError(f"poses must have shape ({k}, 7) or ({k}, 4, 4), got {poses.shape}")
+    return q, Rm, t
 
 
 class SceneRenderer:
@@ -182,6 +182,7 @@ class SceneRenderer:
                             self.viewmats, self.Ks, self.width, self.height, self.near, self.far,
                             self.alpha_min)
         self._bg_bins = _bins(self._bg, self.tiles_x, self.tiles_y)
+        self._bg_opac = np.ascontiguousarray(bg.opacities, np.float32)
         self._bg_rgb = np.empty((self.V, bg.num, 3), np.float32)
         sh = np.zeros((bg.num, (self._sh_degree + 1) ** 2, 3), np.float32)
         m = min(sh.shape[1], bg.sh.shape[1])
@@ -214,14 +215,14 @@ class SceneRenderer:
 
     def _update_objects(self, st, poses, moved, layout, dirty) -> None:
         """Re-pose, re-project and re-colour the moved objects; mark their old and new tiles."""
+        q_all, R_all, t_all = poses
         for k in moved:
             s, e = self._slices[k], self._slices[k + 1]
             if e == s:
                 continue
             if dirty is not None:
                 I.mark_tiles(st["proj"].rects[:, s:e], self.tiles_x, self.tiles_y, dirty)
-            t = poses[k, :3, 3]
-            q, Rm = _pose_rotation(poses[k, :3, :3])
+            t, q, Rm = t_all[k], q_all[k], R_all[k]
             I.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
                               st["quats"][s:e])
             pr = _project(st["means"][s:e], st["quats"][s:e], self._obj_scales[s:e], self._obj_opac[s:e],
@@ -238,8 +239,9 @@ class SceneRenderer:
 
     def render(self, poses, *, rgb: bool = True, mask: bool = True, depth: bool = False,
                incremental: bool = True) -> RenderOutput:
-        """Render the objects at ``poses`` ([K, 4, 4] object-to-world, rigid) from every camera."""
-        poses = _as_pose_matrices(poses, self.K)
+        """Render the objects at ``poses`` from every camera: ``[K, 7]`` (x y z qw qx qy qz, the quaternion
+        is renormalised) or ``[K, 4, 4]`` object-to-world rigid transforms (the rotation is re-orthonormalised)."""
+        poses = _rigid(poses, self.K)
         layout = self._channels(rgb, mask, depth)
         st = self._state
         full = st is None or st["layout"] != layout or not incremental
@@ -258,26 +260,45 @@ class SceneRenderer:
             moved = list(range(self.K))
             dirty = None
         else:
-            moved = [k for k in range(self.K) if not np.array_equal(poses[k], st["poses"][k])]
+            old_q, _, old_t = st["poses"]
+            moved = [k for k in range(self.K)
+                     if not (np.array_equal(poses[0][k], old_q[k]) and np.array_equal(poses[2][k], old_t[k]))]
             dirty = np.zeros((self.V, self.tiles_x * self.tiles_y), np.bool_)
         self._update_objects(st, poses, moved, layout, dirty)
-        st["poses"] = poses.copy()
+        st["poses"] = poses
         if full:
             tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
         else:
             tiles = np.flatnonzero(dirty.reshape(-1)).astype(np.int64)
         tiles = tiles[R.balanced_order(tiles.size)]
+        if incremental and "bg_out" not in st:
+            self._background_cache(st)
         if tiles.size:
             b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
             a, b = self._bg, st["proj"]
-            I.composite_merged(tiles, a.means2d, a.conics, np.ascontiguousarray(self.background.opacities, np.float32),
-                               st["bg_colors"], a.rects, a.depths, self._bg_bins[0], self._bg_bins[1],
-                               b.means2d, b.conics, self._obj_opac, st["colors"], b.rects, b.depths, b_off, b_gauss,
-                               self.tiles_x, self.tiles_y, self.width, self.height, self._consts,
-                               st["out"], st["T"])
+            args = (tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths, self._bg_bins[0],
+                    self._bg_bins[1], b.means2d, b.conics, self._obj_opac, st["colors"], b.rects, b.depths, b_off,
+                    b_gauss, self.tiles_x, self.tiles_y, self.width, self.height, self._consts)
+            if incremental:  # pixels no object reaches come from the background-only render
+                I.composite_cached(*args, st["bg_out"], st["bg_T"], st["out"], st["T"])
+            else:
+                I.composite_merged(*args, st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
         return self._outputs(st, layout, tiles)
+
+    def _background_cache(self, st) -> None:
+        """Render the background alone (every tile) into ``st["bg_out"]``, ``st["bg_T"]``."""
+        tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
+        tiles = tiles[R.balanced_order(tiles.size)]
+        st["bg_out"] = np.zeros_like(st["out"])
+        st["bg_T"] = np.ones_like(st["T"])
+        a, b = self._bg, st["proj"]
+        none = np.zeros(tiles.size + 1, np.int64)
+        I.composite_merged(tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths,
+                           self._bg_bins[0], self._bg_bins[1], b.means2d, b.conics, self._obj_opac, st["colors"],
+                           b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width, self.height,
+                           self._consts, st["bg_out"], st["bg_T"])
 
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:
         """The raw accumulators of the last render: colours [V,H,W,D] (no background) and T [V,H,W]."""

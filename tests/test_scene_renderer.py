@@ -222,3 +222,29 @@ def test_bad_render_settings_rejected(setup, kw, msg):
         SceneRenderer(bg, objs, vm, K, W, H, **kw)
     with pytest.raises(ValueError, match=msg):
         RenderSettings(**kw)
+
+
+def test_pose7_and_matrix_poses_render_alike(setup):
+    """``render`` takes [K,7] or [K,4,4]; both give the same image (quaternions renormalised, drifted
+    rotation blocks re-orthonormalised); bad poses name the object."""
+    from dsg_gym.poses import matrix_to_pose7, quat_to_rotmat
+
+    bg, objs, vm, K, W, H = setup
+    mats = np.stack([_pose(-0.2, 0.0, 0.3), _pose(0.1, 0.15, 2.5), _pose(0.15, -0.2, -1.0)])
+    p7 = matrix_to_pose7(mats)
+    a = SceneRenderer(bg, objs, vm, K, W, H).render(mats)
+    scaled = p7.copy()
+    scaled[:, 3:] *= np.array([[1e200], [-3.0], [1e-3]])  # huge, negative, small: same rotations
+    b = SceneRenderer(bg, objs, vm, K, W, H).render(scaled)
+    drift = mats.copy()
+    drift[:, :3, :3] *= 1.0 + 1e-9  # a slightly non-orthonormal block
+    c = SceneRenderer(bg, objs, vm, K, W, H).render(drift)
+    assert np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max() <= 1 and np.array_equal(a.mask, b.mask)
+    assert np.abs(a.rgb.astype(int) - c.rgb.astype(int)).max() <= 1
+    sr = SceneRenderer(bg, objs, vm, K, W, H)
+    for bad, msg in ((np.where(np.arange(7) == 4, np.nan, p7), "object 0"),
+                     (np.concatenate([p7[:2], [[0, 0, 0, 0, 0, 0, 0]]]), "object 2"),
+                     (p7[:, :6], "shape")):
+        with pytest.raises(ValueError, match=msg):
+            sr.render(bad)
+    assert np.allclose(quat_to_rotmat(scaled[:, 3:]), mats[:, :3, :3], atol=1e-12)

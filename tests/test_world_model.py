@@ -31,6 +31,16 @@ def test_pose_helpers_agree_with_torch_geometry():
         P.as_poses7(np.diag([2.0, 1, 1, 1])[None], 1)
 
 
+def test_quat_normalize_huge_tiny_and_bad():
+    q = np.array([[1e300, -2e300, 0.0, 5e299], [1.0, -2.0, 0.0, 0.5], [-1e-6, 0.0, 3e-6, 0.0]])
+    n = P.quat_normalize(q)
+    assert np.all(np.isfinite(n)) and np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-15)
+    assert np.allclose(n[0], n[1], atol=1e-15) and n[2, 0] >= 0.0
+    for bad in ([0.0, 0.0, 0.0, 0.0], [np.nan, 1.0, 0.0, 0.0], [np.inf, 0.0, 0.0, 0.0], [1e-13, 0.0, 0.0, 0.0]):
+        with pytest.raises(ValueError, match="zero or not finite"):
+            P.quat_normalize(np.array(bad))
+
+
 def test_compose_moves_objects_rigidly():
     w = two_box_world()
     rng = np.random.default_rng(1)

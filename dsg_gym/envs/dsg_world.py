@@ -14,7 +14,6 @@ from ..poses import (
     as_poses7,
     axis_angle_to_quat,
     matrix_to_pose7,
-    pose7_to_matrix,
     quat_multiply,
     quat_normalize,
     yaw_to_quat,
@@ -317,7 +316,7 @@ class DSGWorldEnv(gym.Env):
         want = {k: k in self.obs_keys for k in ("rgb", "mask", "depth")}
         if any(want.values()):
             out = self.renderer.render(
-                pose7_to_matrix(self._poses), rgb=want["rgb"], mask=want["mask"], depth=want["depth"],
+                self._poses, rgb=want["rgb"], mask=want["mask"], depth=want["depth"],
                 incremental=self.incremental,
             )  # fmt: skip
             for key in ("rgb", "mask", "depth"):
@@ -344,7 +343,7 @@ class DSGWorldEnv(gym.Env):
             ks[:, 0] *= sx
             ks[:, 1] *= sy
             self._view_renderer = self._make_renderer(Cameras(c.viewmats, ks, self.render_width, self.render_height))
-        out = self._view_renderer.render(pose7_to_matrix(self._poses), rgb=True, mask=False, depth=False)
+        out = self._view_renderer.render(self._poses, rgb=True, mask=False, depth=False)
         return np.concatenate(list(out.rgb), axis=1)
 
     # ------------------------------------------------------------------ episodes
@@ -375,8 +374,8 @@ class DSGWorldEnv(gym.Env):
         info = self._info(np.zeros(self.K, bool), report, collided=False, settled=False)
         return self._observe(), info
 
-    def _info(self, rejected, report, collided: bool, settled: bool) -> dict[str, Any]:
-        pe, re = self.task.errors(self._poses, self._goal)
+    def _info(self, rejected, report, collided: bool, settled: bool, errors=None) -> dict[str, Any]:
+        pe, re = self.task.errors(self._poses, self._goal) if errors is None else errors
         p = self.task.params
         return {
             "success": bool(np.all(pe <= p.position_tolerance) and np.all(re <= p.rotation_tolerance)),
@@ -464,9 +463,10 @@ class DSGWorldEnv(gym.Env):
                 rejected |= more
         self._poses = cand
         self._steps += 1
-        reward, success = self.task.reward(self._poses, self._goal, collided)
+        errors = self.task.errors(self._poses, self._goal)
+        reward, success = self.task.reward(self._poses, self._goal, collided, errors)
         truncated = self.max_episode_steps is not None and self._steps >= self.max_episode_steps
-        info = self._info(rejected, report, collided, settled)
+        info = self._info(rejected, report, collided, settled, errors)
         return self._observe(), reward, success, bool(truncated and not success), info
 
     def _reject(self, cand, moved, report, bounds_only: bool, previous=None):

@@ -107,10 +107,12 @@ class RearrangementTask:
         pe, re = self.errors(poses, goal)
         return bool(np.all(pe <= self.params.position_tolerance) and np.all(re <= self.params.rotation_tolerance))
 
-    def reward(self, poses: np.ndarray, goal: np.ndarray, collided: bool) -> tuple[float, bool]:
-        """``(reward, success)`` of a step that ended at ``poses``."""
+    def reward(self, poses: np.ndarray, goal: np.ndarray, collided: bool,
+               errors: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, bool]:
+        """``(reward, success)`` of a step that ended at ``poses`` (``errors``: ``self.errors(poses, goal)``
+        when the caller has it already)."""
         p = self.params
-        pe, re = self.errors(poses, goal)
+        pe, re = self.errors(poses, goal) if errors is None else errors
         success = bool(np.all(pe <= p.position_tolerance) and np.all(re <= p.rotation_tolerance))
         r = -(float(pe.mean()) + p.rotation_weight * float(re.mean()))
         if success:

@@ -14,7 +14,7 @@ import math
 import numba as nb
 import numpy as np
 
-from ._numba_raster import _FASTMATH, TILE, splat_forward, store_tile, tile_state
+from ._numba_raster import _FASTMATH, TILE, _bits, _row_span, splat_forward, store_tile, tile_state
 from .sh import C0, C1, C2, C3
 
 
@@ -59,6 +59,77 @@ def composite_merged(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_g
         store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
 
 
+@nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def composite_cached(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_gauss,
+                     b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                     tiles_x, tiles_y, width, height, consts, bg_colors, bg_T, out_colors, out_T):
+    """``composite_merged`` that reuses a background-only render (bg_colors [C,H,W,D], bg_T [C,H,W]).
+
+    A pixel that no object Gaussian's footprint reaches (row spans where its alpha can reach
+    alpha_min, with the 1 px margin of ``_row_span``) receives exactly the background-only
+    sequence of blends, so its accumulators are copied from the cache and marked finished;
+    only the object-covered pixels are composited. Bit-identical to ``composite_merged``.
+    """
+    T = tiles_x * tiles_y
+    D = out_colors.shape[3]
+    amin = consts[1]
+    for m in nb.prange(tiles.shape[0]):
+        ct = tiles[m]
+        c = ct // T
+        px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
+            ct - c * T, tiles_x, width, height, D, out_colors.dtype)
+        npix = pw * ph
+        cover = np.zeros(TILE, dtype=np.int64)  # bit lx of row ly: an object may blend into that pixel
+        for s in range(b_off[ct], b_off[ct + 1]):
+            g = b_gauss[s]
+            xr0 = max(b_rect[c, g, 0], px0)
+            xr1 = min(b_rect[c, g, 1], px0 + pw - 1)
+            y0 = max(b_rect[c, g, 2], py0) - py0
+            y1 = min(b_rect[c, g, 3], py0 + ph - 1) - py0
+            if xr1 < xr0:
+                continue
+            logo = math.log(np.float64(b_op[g]) / np.float64(amin))
+            for ly in range(y0, y1 + 1):
+                dy = yc[ly] - b_m2[c, g, 1]
+                x0, x1 = _row_span(b_cn[c, g, 0], b_cn[c, g, 1], b_cn[c, g, 2], b_m2[c, g, 0], np.float64(dy),
+                                   logo, xr0, xr1, px0)
+                if x0 <= x1:
+                    cover[ly] |= _bits(x0, x1)
+        ndone = 0
+        for ly in range(ph):
+            for lx in range(pw):
+                if (cover[ly] >> lx) & 1:
+                    continue
+                p = ly * TILE + lx
+                for d in range(D):
+                    acc[p, d] = bg_colors[c, py0 + ly, px0 + lx, d]
+                trans[p] = bg_T[c, py0 + ly, px0 + lx]
+                done[p] = True
+                row_done[ly] |= np.int64(1) << lx
+                ndone += 1
+        i = a_off[ct]
+        ie = a_off[ct + 1]
+        j = b_off[ct]
+        je = b_off[ct + 1]
+        while (i < ie or j < je) and ndone < npix:
+            take_a = j >= je or (i < ie and a_depth[c, a_gauss[i]] <= b_depth[c, b_gauss[j]])
+            if take_a:
+                g = a_gauss[i]
+                i += 1
+                ndone += splat_forward(consts, a_m2[c, g, 0], a_m2[c, g, 1], a_cn[c, g, 0], a_cn[c, g, 1],
+                                       a_cn[c, g, 2], a_op[g], a_rect[c, g, 0], a_rect[c, g, 1], a_rect[c, g, 2],
+                                       a_rect[c, g, 3], a_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
+                                       row_done)
+            else:
+                g = b_gauss[j]
+                j += 1
+                ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
+                                       b_cn[c, g, 2], b_op[g], b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2],
+                                       b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
+                                       row_done)
+        store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
+
+
 @nb.njit(cache=True)
 def mark_tiles(rects, tiles_x, tiles_y, dirty):
     """dirty [C, T] |= tiles touched by any rectangle in rects [C, n, 4]."""
@@ -72,6 +143,94 @@ def mark_tiles(rects, tiles_x, tiles_y, dirty):
             for ty in range(rects[c, i, 2] // TILE, rects[c, i, 3] // TILE + 1):
                 for tx in range(x0 // TILE, x1 // TILE + 1):
                     dirty[c, ty * tiles_x + tx] = True
+
+
+@nb.njit(cache=True, inline="always")
+def _unit_quat_to_rot(q, R):
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@nb.njit(cache=True, inline="always")
+def _unit(q):
+    """Normalise q [4] in place with w >= 0; False for a zero or non-finite quaternion."""
+    m = 0.0
+    for i in range(4):
+        if not math.isfinite(q[i]):
+            return False
+        m = max(m, abs(q[i]))
+    if not (m > 0.0):
+        return False
+    n = 0.0
+    for i in range(4):
+        q[i] /= m  # scale first: no overflow for huge finite quaternions
+        n += q[i] * q[i]
+    n = math.sqrt(n)
+    if m * n <= 1e-12:  # as dsg_gym.poses.quat_normalize: a near-zero quaternion is an error
+        return False
+    sgn = -1.0 if q[0] < 0.0 else 1.0
+    for i in range(4):
+        q[i] = sgn * q[i] / n
+    return True
+
+
+@nb.njit(cache=True)
+def rigid_from_pose7(p7, q_out, R_out, t_out):
+    """Poses [K,7] (x y z qw qx qy qz) -> unit quaternions (w >= 0) [K,4], rotations [K,3,3],
+    translations [K,3]; returns the index of the first pose with a zero/non-finite quaternion or a
+    non-finite position, else -1."""
+    for k in range(p7.shape[0]):
+        for i in range(3):
+            t_out[k, i] = p7[k, i]
+            if not math.isfinite(p7[k, i]):
+                return k
+        for i in range(4):
+            q_out[k, i] = p7[k, 3 + i]
+        if not _unit(q_out[k]):
+            return k
+        _unit_quat_to_rot(q_out[k], R_out[k])
+    return -1
+
+
+@nb.njit(cache=True)
+def rigid_from_matrices(M, q_out, R_out, t_out):
+    """Rigid transforms [K,4,4] -> (as ``rigid_from_pose7``); the quaternion comes from the rotation block
+    by Shepperd's method and the rotation is rebuilt from it (consistent and orthonormal even if the
+    block drifted). Returns the index of the first non-finite matrix or rotation with det <= 0, else -1."""
+    for k in range(M.shape[0]):
+        r = M[k]
+        for i in range(4):
+            for j in range(4):
+                if not math.isfinite(r[i, j]):
+                    return k
+        det = (r[0, 0] * (r[1, 1] * r[2, 2] - r[1, 2] * r[2, 1]) - r[0, 1] * (r[1, 0] * r[2, 2] - r[1, 2] * r[2, 0])
+               + r[0, 2] * (r[1, 0] * r[2, 1] - r[1, 1] * r[2, 0]))
+        if not (det > 0.0):
+            return k
+        tr = r[0, 0] + r[1, 1] + r[2, 2]
+        q = q_out[k]
+        if tr >= r[0, 0] and tr >= r[1, 1] and tr >= r[2, 2]:
+            q[0], q[1], q[2], q[3] = 1.0 + tr, r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
+        elif r[0, 0] >= r[1, 1] and r[0, 0] >= r[2, 2]:
+            q[0], q[1], q[2], q[3] = r[2, 1] - r[1, 2], 1.0 + r[0, 0] - r[1, 1] - r[2, 2], r[0, 1] + r[1, 0], r[0, 2] + r[2, 0]
+        elif r[1, 1] >= r[2, 2]:
+            q[0], q[1], q[2], q[3] = r[0, 2] - r[2, 0], r[0, 1] + r[1, 0], 1.0 + r[1, 1] - r[0, 0] - r[2, 2], r[1, 2] + r[2, 1]
+        else:
+            q[0], q[1], q[2], q[3] = r[1, 0] - r[0, 1], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], 1.0 + r[2, 2] - r[0, 0] - r[1, 1]
+        if not _unit(q):
+            return k
+        _unit_quat_to_rot(q, R_out[k])
+        for i in range(3):
+            t_out[k, i] = r[i, 3]
+    return -1
 
 
 @nb.njit(cache=True)

@@ -279,10 +279,9 @@ class SceneRenderer:
             args = (tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths, self._bg_bins[0],
                     self._bg_bins[1], b.means2d, b.conics, self._obj_opac, st["colors"], b.rects, b.depths, b_off,
                     b_gauss, self.tiles_x, self.tiles_y, self.width, self.height, self._consts)
-            if incremental:  # pixels no object reaches come from the background-only render
-                I.composite_cached(*args, st["bg_out"], st["bg_T"], st["out"], st["T"])
-            else:
-                I.composite_merged(*args, st["out"], st["T"])
+            # incremental: pixels that no object reaches come from the background-only render
+            cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
+            I.composite_merged(*args, bool(incremental), *cache, st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
         return self._outputs(st, layout, tiles)
@@ -298,7 +297,7 @@ class SceneRenderer:
         I.composite_merged(tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths,
                            self._bg_bins[0], self._bg_bins[1], b.means2d, b.conics, self._obj_opac, st["colors"],
                            b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width, self.height,
-                           self._consts, st["bg_out"], st["bg_T"])
+                           self._consts, False, st["bg_out"], st["bg_T"], st["bg_out"], st["bg_T"])
 
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:
         """The raw accumulators of the last render: colours [V,H,W,D] (no background) and T [V,H,W]."""

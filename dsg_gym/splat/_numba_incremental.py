@@ -18,57 +18,57 @@ from ._numba_raster import _FASTMATH, TILE, _bits, _row_span, splat_forward, sto
 from .sh import C0, C1, C2, C3
 
 
+@nb.njit(cache=True, inline="always")
+def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, amin,
+                    bg_colors, bg_T, acc, trans, done, row_done):
+    """Fill the tile pixels no object Gaussian can reach from the background-only render and mark them
+    finished; returns how many."""
+    D = acc.shape[1]
+    cover = np.zeros(TILE, dtype=np.int64)  # bit lx of row ly: an object may blend into that pixel
+    for s in range(b_off[ct], b_off[ct + 1]):
+        g = b_gauss[s]
+        xr0 = max(b_rect[c, g, 0], px0)
+        xr1 = min(b_rect[c, g, 1], px0 + pw - 1)
+        y0 = max(b_rect[c, g, 2], py0) - py0
+        y1 = min(b_rect[c, g, 3], py0 + ph - 1) - py0
+        if xr1 < xr0:
+            continue
+        logo = math.log(np.float64(b_op[g]) / np.float64(amin))
+        for ly in range(y0, y1 + 1):
+            dy = yc[ly] - b_m2[c, g, 1]
+            x0, x1 = _row_span(b_cn[c, g, 0], b_cn[c, g, 1], b_cn[c, g, 2], b_m2[c, g, 0], np.float64(dy),
+                               logo, xr0, xr1, px0)
+            if x0 <= x1:
+                cover[ly] |= _bits(x0, x1)
+    n = 0
+    for ly in range(ph):
+        for lx in range(pw):
+            if (cover[ly] >> lx) & 1:
+                continue
+            p = ly * TILE + lx
+            for d in range(D):
+                acc[p, d] = bg_colors[c, py0 + ly, px0 + lx, d]
+            trans[p] = bg_T[c, py0 + ly, px0 + lx]
+            done[p] = True
+            row_done[ly] |= np.int64(1) << lx
+            n += 1
+    return n
+
+
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def composite_merged(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_gauss,
                      b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                     tiles_x, tiles_y, width, height, consts, out_colors, out_T):
+                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
     """Recomposite the listed tiles (``tiles`` [M] of ``c * T + t``) into out_colors/out_T.
 
     Per set: means2d [C,N,2], conics [C,N,3], opacities [N], colors [C,N,D], rects [C,N,4],
     depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
-    """
-    T = tiles_x * tiles_y
-    D = out_colors.shape[3]
-    for m in nb.prange(tiles.shape[0]):
-        ct = tiles[m]
-        c = ct // T
-        px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
-            ct - c * T, tiles_x, width, height, D, out_colors.dtype)
-        npix = pw * ph
-        ndone = 0
-        i = a_off[ct]
-        ie = a_off[ct + 1]
-        j = b_off[ct]
-        je = b_off[ct + 1]
-        while (i < ie or j < je) and ndone < npix:
-            take_a = j >= je or (i < ie and a_depth[c, a_gauss[i]] <= b_depth[c, b_gauss[j]])
-            if take_a:
-                g = a_gauss[i]
-                i += 1
-                ndone += splat_forward(consts, a_m2[c, g, 0], a_m2[c, g, 1], a_cn[c, g, 0], a_cn[c, g, 1],
-                                       a_cn[c, g, 2], a_op[g], a_rect[c, g, 0], a_rect[c, g, 1], a_rect[c, g, 2],
-                                       a_rect[c, g, 3], a_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
-                                       row_done)
-            else:
-                g = b_gauss[j]
-                j += 1
-                ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
-                                       b_cn[c, g, 2], b_op[g], b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2],
-                                       b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
-                                       row_done)
-        store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
 
-
-@nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def composite_cached(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_gauss,
-                     b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                     tiles_x, tiles_y, width, height, consts, bg_colors, bg_T, out_colors, out_T):
-    """``composite_merged`` that reuses a background-only render (bg_colors [C,H,W,D], bg_T [C,H,W]).
-
-    A pixel that no object Gaussian's footprint reaches (row spans where its alpha can reach
-    alpha_min, with the 1 px margin of ``_row_span``) receives exactly the background-only
-    sequence of blends, so its accumulators are copied from the cache and marked finished;
-    only the object-covered pixels are composited. Bit-identical to ``composite_merged``.
+    ``use_cache``: reuse a background-only render (bg_colors [C,H,W,D], bg_T [C,H,W]; ignored
+    otherwise). A pixel that no object Gaussian's footprint reaches (the row spans where its alpha
+    can reach alpha_min, with the 1 px margin of ``_row_span``) receives exactly the
+    background-only sequence of blends, so its accumulators are copied from the cache and marked
+    finished; only object-covered pixels are composited. The result is the same bit for bit.
     """
     T = tiles_x * tiles_y
     D = out_colors.shape[3]
@@ -79,34 +79,10 @@ def composite_cached(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_g
         px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
             ct - c * T, tiles_x, width, height, D, out_colors.dtype)
         npix = pw * ph
-        cover = np.zeros(TILE, dtype=np.int64)  # bit lx of row ly: an object may blend into that pixel
-        for s in range(b_off[ct], b_off[ct + 1]):
-            g = b_gauss[s]
-            xr0 = max(b_rect[c, g, 0], px0)
-            xr1 = min(b_rect[c, g, 1], px0 + pw - 1)
-            y0 = max(b_rect[c, g, 2], py0) - py0
-            y1 = min(b_rect[c, g, 3], py0 + ph - 1) - py0
-            if xr1 < xr0:
-                continue
-            logo = math.log(np.float64(b_op[g]) / np.float64(amin))
-            for ly in range(y0, y1 + 1):
-                dy = yc[ly] - b_m2[c, g, 1]
-                x0, x1 = _row_span(b_cn[c, g, 0], b_cn[c, g, 1], b_cn[c, g, 2], b_m2[c, g, 0], np.float64(dy),
-                                   logo, xr0, xr1, px0)
-                if x0 <= x1:
-                    cover[ly] |= _bits(x0, x1)
         ndone = 0
-        for ly in range(ph):
-            for lx in range(pw):
-                if (cover[ly] >> lx) & 1:
-                    continue
-                p = ly * TILE + lx
-                for d in range(D):
-                    acc[p, d] = bg_colors[c, py0 + ly, px0 + lx, d]
-                trans[p] = bg_T[c, py0 + ly, px0 + lx]
-                done[p] = True
-                row_done[ly] |= np.int64(1) << lx
-                ndone += 1
+        if use_cache:
+            ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, amin,
+                                    bg_colors, bg_T, acc, trans, done, row_done)
         i = a_off[ct]
         ie = a_off[ct + 1]
         j = b_off[ct]

@@ -41,6 +41,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--shadows", action="store_true", help="lights cast shadows (harder variant; off by default)"
     )
+    p.add_argument(
+        "--lighting", choices=("soft", "spot"), default="soft",
+        help="soft (default): light mostly from the camera, weak fixed lights; spot: strong fixed spot lights "
+        "that shade moved objects differently (harder variant; generator 1.0's look)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -66,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             test_views=args.test_views,
             test_states=args.test_states,
             shadows=args.shadows,
+            lighting=args.lighting,
             progress=not args.quiet,
         )
         if args.scene == "all":

@@ -35,13 +35,14 @@ from .states import sample_states, verify_with_mujoco  # noqa: E402
 
 __all__ = ["GENERATOR_VERSION", "GenerateConfig", "generate_scene", "rng_for"]
 
-GENERATOR_VERSION = "1.0"
+GENERATOR_VERSION = "1.1"  # 1.1: "soft" lighting and test cameras in the training band by default
 
 
 @dataclass(frozen=True)
 class GenerateConfig:
     """What to generate: image size, training views per training state, held-out test cameras shared by the
-    ``test_states`` test states, whether lights cast shadows."""
+    ``test_states`` test states, whether lights cast shadows, the lighting preset (``"soft"`` or ``"spot"``,
+    :data:`~train_world.synth.build.LIGHTING`)."""
 
     seed: int = 0
     width: int = 128
@@ -50,6 +51,7 @@ class GenerateConfig:
     test_views: int = 12
     test_states: int = 3
     shadows: bool = False
+    lighting: str = "soft"
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -58,6 +60,8 @@ class GenerateConfig:
                 raise ValueError(f"GenerateConfig.{k} must be >= 1, got {getattr(self, k)}")
         if self.test_views < 0 or self.test_states < 0:
             raise ValueError("GenerateConfig.test_views and test_states must be >= 0")
+        if self.lighting not in ("soft", "spot"):
+            raise ValueError(f"GenerateConfig.lighting must be 'soft' or 'spot', got {self.lighting!r}")
         if (self.test_states > 0) != (self.test_views > 0):
             raise ValueError("test states need test views (and vice versa): set both > 0 or both 0")
 
@@ -99,6 +103,7 @@ def _scene_json(
             "test_views": cfg.test_views,
             "test_states": cfg.test_states,
             "shadows": bool(cfg.shadows),
+            "lighting": cfg.lighting,
             "mujoco_version": mujoco.__version__,
         },
         "objects": [
@@ -133,7 +138,7 @@ def generate_scene(
     cfg = GenerateConfig() if config is None else config
     out = Path(out)
     with staged_directory(out, overwrite=overwrite) as stage:
-        built = build_scene(scene, cfg.width, cfg.height, cfg.shadows)
+        built = build_scene(scene, cfg.width, cfg.height, cfg.shadows, cfg.lighting)
         data = mujoco.MjData(built.model)
         states = sample_states(scene, rng_for(cfg.seed, "states"), cfg.test_states)
         for name, poses in states.items():

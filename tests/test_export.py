@@ -100,9 +100,11 @@ def test_recorded_episode_round_trip(tmp_path, capsys, wm):
     env = RecordEpisode(gym.make("DSGWorld-v0", obs=("rgb",), width=32, height=32))  # no poses in obs
     env.reset(seed=3)
     env.action_space.seed(3)
-    for _ in range(20):
-        env.step(env.action_space.sample())
+    for i in range(20):
+        a = env.action_space.sample()
+        env.step(3.0 * a if i == 0 else a)  # out of range: the env clips, the episode records what it applied
     ep = env.episode()
+    assert np.abs(ep.actions).max() <= 1.0 and np.abs(ep.actions[0]).max() == 1.0
     assert ep.num_steps == 21 and ep.num_objects == wm.num_objects and ep.fps == env.metadata["render_fps"]
     assert ep.actions.shape == (20, env.action_space.shape[0]) and ep.rewards.shape == (20,)
     assert np.abs(matrix_to_pose7(ep.poses[-1]) - env.unwrapped._poses).max() < 1e-12

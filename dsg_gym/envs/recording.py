@@ -20,7 +20,7 @@ key           shape / dtype       meaning
 ``fps``       [] float64          playback rate (USD ``timeCodesPerSecond``), > 0
 ``poses``     [T,K,4,4] float64   object-to-world pose of each object after ``t`` steps (T >= 1)
 ``rewards``   [T-1] float64       optional: reward received on reaching state ``t + 1``
-``actions``   [T-1,A] float64     optional: action taken in state ``t``
+``actions``   [T-1,A] float64     optional: action applied in state ``t`` (clipped to the action space, as the env does)
 ============  ==================  ================================================================
 """
 
@@ -152,9 +152,12 @@ class RecordEpisode(gym.Wrapper):
         return obs, info
 
     def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        self.recorder.step(env_poses(self.env), reward=float(reward),
-                           action=np.asarray(action, dtype=np.float64).reshape(-1))
+        obs, reward, terminated, truncated, info = self.env.step(action)  # raises on a bad action
+        applied = np.asarray(action, dtype=np.float64).reshape(-1)
+        space = self.env.action_space
+        if isinstance(space, gym.spaces.Box):  # the env clips to its Box: record what it applied
+            applied = np.clip(applied, space.low.reshape(-1), space.high.reshape(-1))
+        self.recorder.step(env_poses(self.env), reward=float(reward), action=applied)
         if (terminated or truncated) and not self._finished:
             self._finished = True
             if self.folder is not None:

@@ -388,7 +388,10 @@ def main(argv: list[str] | None = None) -> int:
             "options": {"steps": args.steps, "rounds": args.rounds, "seed": args.seed, "scenes": args.scenes,
                         "tolerance_db": TOLERANCE_DB},
             "default_size": args.size,
-            "default_settings": C.RenderSettings().kwargs(),
+            "default_settings": {"alpha_min": C.DEFAULT_ALPHA_MIN, "t_min": C.DEFAULT_T_MIN, "sh_degree": None},
+            "env_default_settings": C.RenderSettings().kwargs(),
+            "env_default_is_recommended": bool(rec) and all(
+                rec["render_settings"].get(k) == v for k, v in C.RenderSettings().kwargs().items()),
             "method": NOTES[1],
             "bundled": bundled,
             "recommended": rec,

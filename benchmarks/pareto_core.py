@@ -17,11 +17,14 @@ import numpy as np
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.poses import pose7_to_matrix
 from dsg_gym.scene_renderer import RenderSettings, SceneRenderer
+from dsg_gym.splat._numba_raster import ALPHA_MIN, T_MIN
 from dsg_gym.world_model import WorldModel
 
 DEFAULT_SIZE = 128  # the env's default observation size
-DEFAULT_ALPHA_MIN = RenderSettings().alpha_min
-DEFAULT_T_MIN = RenderSettings().t_min
+# the sweep's reference ("default" point): the 3DGS thresholds of the training renderer; the env's default
+# RenderSettings() is the point this benchmark recommends (pareto.json says whether they still agree)
+DEFAULT_ALPHA_MIN = ALPHA_MIN
+DEFAULT_T_MIN = T_MIN
 STORAGES = ("float32", "float16", "float16_all")
 RENDER_AXES = ("alpha_min", "t_min", "sh_degree")
 

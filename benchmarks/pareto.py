@@ -18,8 +18,8 @@ rendering, the same seeded episode for every point, interleaved rounds, median) 
 env's renderer at the test poses and cameras (PSNR and SSIM as ``dsg-eval``, mask IoU of the env's mask).
 Writes ``DIR/pareto.json``, ``DIR/pareto.md`` and ``DIR/pareto.png`` (step time against PSNR, Pareto front
 marked) and the recommended renderer settings (``recommended`` in the JSON; rule in ``recommended.rule``).
-The bundled world's ground truth is ``two_blocks`` regenerated with ``lighting="spot"`` (bit for bit the images
-it was trained on; the generator's own test cameras). The seven scenes have no trained worlds (about 30 min of
+The bundled world's ground truth is ``two_blocks`` regenerated with the lighting it was trained under
+(``world_lighting``: bit for bit the images it was trained on; the generator's own test cameras). The seven scenes have no trained worlds (about 30 min of
 training each), so their geometry worlds (``train_world.geom_world``, baked under the generator's default
 lighting) stand in (``--scenes none`` skips them). ``--training`` adds novel-state PSNR
 against training wall-clock for the three ``dsg-train`` presets (``benchmarks.pareto_training``, heavy:
@@ -75,9 +75,13 @@ def _git() -> str:
     return head + (f" + uncommitted changes in {', '.join(dirty)}" if dirty else "")
 
 
-#: the bundled world was trained on dsg-synth 1.0's two_blocks (strong world-fixed lights), which generator 1.1
-#: reproduces bit for bit with ``lighting="spot"``; geometry worlds bake their colours under the default lights
-BUNDLED_LIGHTING = "spot"
+def world_lighting(world) -> str:
+    """The dsg-synth lighting a world was trained under: ``metadata.source.generator.lighting``; worlds
+    without it come from generator 1.0, whose strong world-fixed lights 1.1 reproduces bit for bit with
+    ``"spot"``. (Geometry worlds bake their colours under the generator's default lights.)"""
+    src = world.metadata.get("source") or {}
+    gen = src.get("generator") if isinstance(src, dict) else None
+    return str(gen.get("lighting", "spot")) if isinstance(gen, dict) else "spot"
 
 
 def _capture(work: Path, scene: str, quick: bool, lighting: str | None = None) -> Path:
@@ -207,7 +211,7 @@ def run_bundled(args, work: Path) -> tuple[dict, dict | None, list[C.Point]]:
     from dsg_gym.world_model import WorldModel
 
     world = WorldModel.load(DEFAULT_WORLD).without_features()
-    cap = _capture(work, "two_blocks", args.quick, BUNDLED_LIGHTING)
+    cap = _capture(work, "two_blocks", args.quick, world_lighting(world))
     test = C.load_test_states(cap, world.object_ids, max_views=4 if args.quick else None)
     for s, P in test.poses.items():
         if s in world.states and not np.allclose(world.states[s], P, atol=1e-9):
@@ -300,7 +304,7 @@ def run_scenes(args, work: Path, points: list[C.Point], rec: dict | None) -> dic
 
 
 def run_training(args, work: Path, out: Path) -> dict:
-    cap = _capture(work, args.train_scene, False, BUNDLED_LIGHTING)
+    cap = _capture(work, args.train_scene, False)  # the generator's default lighting
     tmp = out / ".training.json"
     env = dict(os.environ)
     if _LAYER_SET_HERE:

@@ -227,3 +227,13 @@ def test_quick_run_writes_json_markdown_and_png(tmp_path):
         data = (out / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
     assert not list(out.glob(".*"))  # no temporary files left
+
+
+def test_world_lighting_reads_the_generator_or_falls_back_to_generator_1_0():
+    from types import SimpleNamespace
+
+    from benchmarks.pareto import world_lighting
+
+    assert world_lighting(SimpleNamespace(metadata={"source": {"generator": {"lighting": "soft"}}})) == "soft"
+    assert world_lighting(SimpleNamespace(metadata={"source": {"kind": "capture"}})) == "spot"
+    assert world_lighting(SimpleNamespace(metadata={})) == "spot"

@@ -228,6 +228,8 @@ def test_cli_help_and_quick_run(tiny, tmp_path, capsys):
     w = load_world(out)
     assert w.object_names == ("red_box", "blue_cylinder") and w.metadata["iterations"] == 20
     assert w.metadata["heldout_views"] == [0, 8] and len(w.cameras["state1"]) == 16
+    gen = w.metadata["source"]["generator"]  # what regenerates the ground truth of a synthetic capture
+    assert gen["name"] == "dsg-synth" and gen["lighting"] in ("soft", "spot") and "seed" in gen
     n = w.background.num + sum(o.gaussians.num for o in w.objects.values())
     assert n == w.metadata["num_gaussians"]
     assert (tmp_path / "w.dsgw.ckpt").exists()

@@ -15,6 +15,8 @@ Mask ids (any of 1..255) map to contiguous classes ``1..K`` in the order of the 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,6 +110,17 @@ def _alphas(paths, downscale: int) -> torch.Tensor | None:
     return torch.from_numpy(np.stack(out))
 
 
+def _capture_source(p: Path, cap, downscale: int) -> dict:
+    """The world's ``metadata.source`` for a capture: where it came from and, for a synthetic capture, the
+    generator settings (lighting, test cameras' seed...) needed to regenerate its ground truth."""
+    src = {"kind": "capture", "path": str(p.resolve()), "downscale": downscale, "name": cap.name}
+    gen = cap.metadata.get("generator") if isinstance(cap.metadata, Mapping) else None
+    if isinstance(gen, Mapping):
+        src["generator"] = {k: gen[k] for k in ("name", "version", "seed", "scene_spec", "views", "test_views",
+                                                 "test_states", "shadows", "lighting") if k in gen}
+    return src
+
+
 def load_training_data(path: str | Path, config) -> TrainData:
     """Load the training views described by ``config`` (a :class:`TrainConfig`)."""
     kind, p = resolve_source(path)
@@ -180,7 +193,7 @@ def load_training_data(path: str | Path, config) -> TrainData:
         all_Ks=v.Ks.numpy(),
         heldout=held,
         poses=poses,
-        source={"kind": "capture", "path": str(p.resolve()), "downscale": config.downscale, "name": cap.name},
+        source=_capture_source(p, cap, config.downscale),
         table_bounds=cap.table_bounds,
     )
 

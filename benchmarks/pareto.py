@@ -340,7 +340,7 @@ NOTES = [
     ("Budget: removal-error importance (train_world.importance: background alone from its capture cameras plus "
      "an orbit, objects alone from a sphere of cameras) keeps the top fraction of each part at once, without "
      "dsg-compact's rounds and refit; object hull vertices are kept. The bundled world is already a dsg-compact "
-     "output (59,770 -> 17,718 Gaussians with refit), so pruning it further without refit costs much more."),
+     "output (pruned with refit within 0.3 dB), so pruning it further without refit costs much more."),
     ("float16: emulated by rounding to float16 and back; the renderer computes in float32, so these points "
      "reuse the float32 point's step time ('time_from'); storage_mb is what the arrays would take."),
 ]

@@ -18,7 +18,7 @@ from train_world.data import load_capture  # noqa: E402
 from train_world.synth import cli  # noqa: E402
 from train_world.synth.build import build_scene, set_object_poses  # noqa: E402
 from train_world.synth.cameras import look_at_opengl, orbit_c2w  # noqa: E402
-from train_world.synth.generate import GenerateConfig, generate_scene, rng_for  # noqa: E402
+from train_world.synth.generate import GENERATOR_VERSION, GenerateConfig, generate_scene, rng_for  # noqa: E402
 from train_world.synth.render import SceneRenderer, depth_to_png_units  # noqa: E402
 from train_world.synth.shapes import resting_height, support  # noqa: E402
 from train_world.synth.spec import (  # noqa: E402
@@ -486,3 +486,35 @@ def test_test_orbit_sits_in_the_training_band():
     cams = resolve_scene(SCENE).cameras
     assert abs(cams.test.elevation_deg - cams.train.elevation_deg) <= cams.train.elevation_wobble_deg
     assert cams.test.azimuth_offset_deg != 0.0  # interleaved with the training azimuths, not on them
+
+
+def test_supersampled_rgb_is_the_box_mean_of_a_larger_render(spec):
+    """supersample=2 gives the rounded 2x2 block mean of a 2x render; masks and depth stay pixel-centred."""
+    built = build_scene(spec, 64, 48)
+    data = mujoco.MjData(built.model)
+    set_object_poses(built, data, sample_states(spec, rng_for(0, "states"), 0)["state1"])
+    c2w = look_at_opengl([0.3, -0.6, 0.5], [0.0, 0.0, 0.0])
+    with SceneRenderer(built, 64, 48) as big, SceneRenderer(built, 32, 24) as point, SceneRenderer(
+        built, 32, 24, supersample=2
+    ) as ss:
+        hi, _, _ = big.render(data, c2w, seg=False, depth=False)
+        rgb_p, ids_p, d_p = point.render(data, c2w)
+        rgb_s, ids_s, d_s = ss.render(data, c2w)
+    want = np.rint(hi.reshape(24, 2, 32, 2, 3).astype(np.float64).mean((1, 3))).astype(np.uint8)
+    np.testing.assert_array_equal(rgb_s, want)
+    assert np.abs(rgb_s.astype(int) - rgb_p).max() > 20  # the textures alias without supersampling
+    np.testing.assert_array_equal(ids_s, ids_p)
+    np.testing.assert_array_equal(d_s, d_p)
+
+
+def test_supersample_is_validated_and_recorded(spec, tiny_capture):
+    built = build_scene(spec, 64, 64)
+    with pytest.raises(ValueError, match="offscreen buffer"):
+        SceneRenderer(built, 64, 64, supersample=2)
+    with pytest.raises(ValueError, match="supersample"):
+        SceneRenderer(built, 32, 32, supersample=0)
+    for bad in (0, 17, 2.5):
+        with pytest.raises(ValueError, match="supersample"):
+            GenerateConfig(supersample=bad)
+    gen = json.loads((tiny_capture / "scene.json").read_text())["generator"]
+    assert gen["supersample"] == TINY.supersample == 4 and gen["version"] == GENERATOR_VERSION

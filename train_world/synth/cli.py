@@ -46,6 +46,11 @@ def _parser() -> argparse.ArgumentParser:
         help="soft (default): light mostly from the camera, weak fixed lights; spot: strong fixed spot lights "
         "that shade moved objects differently (harder variant; generator 1.0's look)",
     )
+    p.add_argument(
+        "--supersample", type=int, default=4,
+        help="RGB samples per pixel along each axis, box-averaged like a camera sensor (default 4; 1 = one "
+        "point sample per pixel, generator 1.1's aliased look)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -72,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
             test_states=args.test_states,
             shadows=args.shadows,
             lighting=args.lighting,
+            supersample=args.supersample,
             progress=not args.quiet,
         )
         if args.scene == "all":

@@ -4,6 +4,11 @@ Conventions verified by the tests: MuJoCo's camera frame is OpenGL's (looks down
 pinhole with ``fx = fy = 0.5 * h / tan(fovy / 2)``, principal point ``(w/2, h/2)`` and pixel ``(u, v)``
 centred at ``(u + 0.5, v + 0.5)``; depth is the distance along the optical axis (z-depth, not ray length) in
 metres.
+
+RGB can be *supersampled*: rendered at ``s`` times the size and box-averaged down (``supersample=s``), which
+integrates each pixel's area as a camera sensor does; without it the per-pixel point samples of the table
+textures alias and differ from any view-consistent model by ~34 dB PSNR at 128x128. Masks and depth are
+always sampled at the pixel centres of the output size.
 """
 
 from __future__ import annotations
@@ -29,12 +34,29 @@ def depth_to_png_units(depth_m: np.ndarray) -> np.ndarray:
 
 
 class SceneRenderer:
-    """Renders a :class:`BuiltScene` from arbitrary OpenGL camera-to-world poses."""
+    """Renders a :class:`BuiltScene` from arbitrary OpenGL camera-to-world poses.
 
-    def __init__(self, built: BuiltScene, width: int, height: int):
+    ``supersample``: RGB is rendered at ``supersample`` times the width and height and box-averaged (the
+    model's offscreen buffer, :func:`build.build_scene`'s ``width``/``height``, must be that large).
+    """
+
+    def __init__(self, built: BuiltScene, width: int, height: int, supersample: int = 1):
         self.built = built
         self.width, self.height = int(width), int(height)
+        self.supersample = int(supersample)
+        if self.supersample < 1 or self.supersample != supersample:
+            raise ValueError(f"supersample must be an integer >= 1, got {supersample!r}")
+        vis = built.model.vis.global_
+        need = (self.width * self.supersample, self.height * self.supersample)
+        if need[0] > vis.offwidth or need[1] > vis.offheight:
+            raise ValueError(
+                f"supersampled size {need[0]}x{need[1]} exceeds the model's offscreen buffer "
+                f"{vis.offwidth}x{vis.offheight}: build the scene with width/height >= that size"
+            )
         self.renderer = mujoco.Renderer(built.model, self.height, self.width)
+        self._rgb_renderer = (
+            mujoco.Renderer(built.model, need[1], need[0]) if self.supersample > 1 else self.renderer
+        )
 
     @property
     def fovy_rad(self) -> float:
@@ -64,10 +86,10 @@ class SceneRenderer:
         """
         self.set_camera(data, c2w_gl)
         r = self.renderer
-        r.update_scene(data, camera=self.built.camera_id)
-        out_rgb = r.render().copy() if rgb else None
+        out_rgb = self._render_rgb(data) if rgb else None
         raw = None
         if seg or depth:
+            r.update_scene(data, camera=self.built.camera_id)
             r.enable_segmentation_rendering()
             raw = r.render()
             r.disable_segmentation_rendering()
@@ -80,6 +102,16 @@ class SceneRenderer:
             out_depth[raw[..., 0] < 0] = 0.0
         return out_rgb, ids, out_depth
 
+    def _render_rgb(self, data: mujoco.MjData) -> np.ndarray:
+        r, s = self._rgb_renderer, self.supersample
+        r.update_scene(data, camera=self.built.camera_id)
+        img = r.render()
+        if s == 1:
+            return img.copy()
+        # box filter: mean of each s x s block, in float64, rounded half to even (deterministic)
+        blocks = img.reshape(self.height, s, self.width, s, 3).astype(np.float64)
+        return np.rint(blocks.mean(axis=(1, 3))).astype(np.uint8)
+
     def ids_from_segmentation(self, seg: np.ndarray) -> np.ndarray:
         """MuJoCo segmentation (H,W,2 of object id, object type) -> uint8 object ids (geoms mapped to
         bodies)."""
@@ -90,6 +122,8 @@ class SceneRenderer:
         return ids
 
     def close(self) -> None:
+        if self._rgb_renderer is not self.renderer:
+            self._rgb_renderer.close()
         self.renderer.close()
 
     def __enter__(self) -> SceneRenderer:

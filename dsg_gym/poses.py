@@ -29,13 +29,15 @@ __all__ = [
 def quat_normalize(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     """Unit quaternions with ``w >= 0`` (float64); ValueError for a (near-)zero or non-finite one."""
     q = np.asarray(q, dtype=np.float64)
-    if not np.all(np.isfinite(q)):
+    a = np.abs(q)
+    if not np.isfinite(a).all():
         raise ValueError("quaternion is zero or not finite")
-    big = np.abs(q).max(axis=-1, keepdims=True, initial=0.0) > 1e150
-    if np.any(big):  # rescale those first so that the squared norm cannot overflow
-        q = np.where(big, q / np.where(big, np.abs(q).max(axis=-1, keepdims=True), 1.0), q)
-    n = np.linalg.norm(q, axis=-1, keepdims=True)
-    if np.any(n <= eps):
+    if a.size and a.max() > 1e150:  # rescale those first so that the squared norm cannot overflow
+        big = a.max(axis=-1, keepdims=True) > 1e150
+        q = np.where(big, q / np.where(big, a.max(axis=-1, keepdims=True), 1.0), q)
+    # np.linalg.norm(q, axis=-1, keepdims=True) without its Python overhead (the same reduction)
+    n = np.sqrt(np.add.reduce(q * q, axis=-1, keepdims=True))
+    if (n <= eps).any():
         raise ValueError("quaternion is zero or not finite")
     q = q / n
     return np.where(q[..., :1] < 0, -q, q)
@@ -45,31 +47,31 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product ``a * b`` (rotation ``b`` first), not renormalised."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = aw * bw - ax * bx - ay * by - az * bz
+    out[..., 1] = aw * bx + ax * bw + ay * bz - az * by
+    out[..., 2] = aw * by - ax * bz + ay * bw + az * bx
+    out[..., 3] = aw * bz + ax * by - ay * bx + az * bw
+    return out
 
 
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """``[..., 4] -> [..., 3, 3]`` (renormalises)."""
-    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
-    r = np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )  # fmt: skip
-    return r.reshape(*r.shape[:-1], 3, 3)
+    q = quat_normalize(q)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = np.empty(q.shape[:-1] + (3, 3))
+    r[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    r[..., 0, 1] = 2 * (x * y - w * z)
+    r[..., 0, 2] = 2 * (x * z + w * y)
+    r[..., 1, 0] = 2 * (x * y + w * z)
+    r[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    r[..., 1, 2] = 2 * (y * z - w * x)
+    r[..., 2, 0] = 2 * (x * z - w * y)
+    r[..., 2, 1] = 2 * (y * z + w * x)
+    r[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return r
 
 
 def rotmat_to_quat(r: np.ndarray) -> np.ndarray:
@@ -109,8 +111,10 @@ def axis_angle_to_quat(v: np.ndarray) -> np.ndarray:
 def yaw_to_quat(yaw: np.ndarray) -> np.ndarray:
     """Rotations by ``yaw`` radians about +z, ``[...] -> [..., 4]``."""
     yaw = np.asarray(yaw, dtype=np.float64)
-    z = np.zeros_like(yaw)
-    return quat_normalize(np.stack([np.cos(0.5 * yaw), z, z, np.sin(0.5 * yaw)], axis=-1))
+    q = np.zeros(yaw.shape + (4,))
+    q[..., 0] = np.cos(0.5 * yaw)
+    q[..., 3] = np.sin(0.5 * yaw)
+    return quat_normalize(q)
 
 
 def yaw_of_quat(q: np.ndarray) -> np.ndarray:

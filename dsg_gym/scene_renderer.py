@@ -162,6 +162,7 @@ class SceneRenderer:
             self._obj_sh[self._slices[k]:self._slices[k + 1], :m] = o.sh[:, :m]
         self._obj_label = np.concatenate([np.full(n, k + 1, np.int64) for k, n in enumerate(sizes)]) \
             if sizes else np.zeros(0, np.int64)
+        self._rgb_scratch = np.zeros((max(sizes, default=0), 3), np.float32)  # one object's RGB, one camera
         self.set_cameras(viewmats, Ks, width, height)
 
     # ----------------------------------------------------------------------------------------
@@ -234,11 +235,12 @@ class SceneRenderer:
                           self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min)
             for f in ("means2d", "conics", "depths", "radii", "rects"):
                 getattr(st["proj"], f)[:, s:e] = getattr(pr, f)
-            rgb = np.zeros((self.V, e - s, 3), np.float32)
-            if layout[1] >= 0:
-                for v in range(self.V):
-                    I.sh_to_rgb(st["means"][s:e], Rm, self._campos[v], self._obj_sh[s:e], self._sh_degree, rgb[v])
-            st["colors"][:, s:e] = self._colors(layout, rgb, self._obj_label[s:e] * (layout[2] >= 0), pr.depths)
+            rgb = self._rgb_scratch[:e - s]
+            for v in range(self.V):
+                if layout[1] >= 0:
+                    I.sh_to_rgb(st["means"][s:e], Rm, self._campos[v], self._obj_sh[s:e], self._sh_degree, rgb)
+                I.fill_colors(rgb, self._obj_label[s:e], pr.depths[v], layout[1], layout[2], layout[3],
+                              st["colors"][v, s:e])
             if dirty is not None:
                 I.mark_tiles(pr.rects, self.tiles_x, self.tiles_y, dirty)
 
@@ -279,7 +281,11 @@ class SceneRenderer:
         if incremental and "bg_out" not in st:
             self._background_cache(st)
         if tiles.size:
-            b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
+            if dirty is None:
+                b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
+            else:  # only the recomposited tiles' lists are read
+                b_off, b_gauss = I.bin_tiles(st["proj"].depths.view(np.uint32), st["proj"].rects, dirty,
+                                             self.tiles_x, self.tiles_y)
             a, b = self._bg, st["proj"]
             args = (tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths, self._bg_bins[0],
                     self._bg_bins[1], b.means2d, b.conics, self._obj_opac, st["colors"], b.rects, b.depths, b_off,

@@ -14,7 +14,7 @@ import math
 import numba as nb
 import numpy as np
 
-from ._numba_raster import _FASTMATH, TILE, _bits, _row_span, splat_forward, store_tile, tile_state
+from ._numba_raster import _FASTMATH, TILE, _bits, _row_span, depth_order, splat_forward, store_tile, tile_state
 from .sh import C0, C1, C2, C3
 
 
@@ -311,3 +311,78 @@ def finish_tiles(tiles, tiles_x, tiles_y, width, height, out, T, bg_rgb, o_rgb, 
                     mask[c, y, x] = arg
                 if o_depth >= 0:
                     depth[c, y, x] = out[c, y, x, o_depth] / a if a > 1e-6 else np.float32(0.0)
+
+
+@nb.njit(cache=True)
+def bin_tiles(keys, rects, dirty, tiles_x, tiles_y):
+    """Per-tile depth-ordered Gaussian lists of the tiles flagged in ``dirty`` [C, T] only.
+
+    keys [C,N] unsigned ints that order like the depths, rects [C,N,4] (x1 < x0: culled). Returns
+    ``tile_offsets [C*T+1]`` (CSR; tiles not flagged get empty lists) and ``tile_gauss`` int32. A
+    flagged tile's list equals the one ``_numba_raster.bin_gaussians`` builds from ``depth_order``
+    (depth order, ties in index order): the same stable sort, applied to the Gaussians that reach a
+    flagged tile only (a stable sort of a subsequence is the subsequence of the stable sort).
+    """
+    C = rects.shape[0]
+    N = rects.shape[1]
+    T = tiles_x * tiles_y
+    counts = np.zeros(C * T, dtype=np.int64)
+    sel = np.empty((C, N), dtype=np.int64)
+    nsel = np.zeros(C, dtype=np.int64)
+    for c in range(C):
+        n = 0
+        for i in range(N):
+            x0 = rects[c, i, 0]
+            x1 = rects[c, i, 1]
+            if x1 < x0:
+                continue
+            hit = False
+            for ty in range(rects[c, i, 2] // TILE, rects[c, i, 3] // TILE + 1):
+                for tx in range(x0 // TILE, x1 // TILE + 1):
+                    t = ty * tiles_x + tx
+                    if dirty[c, t]:
+                        counts[c * T + t] += 1
+                        hit = True
+            if hit:
+                sel[c, n] = i
+                n += 1
+        nsel[c] = n
+    offsets = np.zeros(C * T + 1, dtype=np.int64)
+    for t in range(C * T):
+        offsets[t + 1] = offsets[t] + counts[t]
+    gauss = np.empty(offsets[C * T], dtype=np.int32)
+    fill = offsets[:-1].copy()
+    for c in range(C):
+        n = nsel[c]
+        sub_keys = np.empty((1, n), dtype=keys.dtype)
+        sub_rects = np.empty((1, n, 4), dtype=rects.dtype)
+        for k in range(n):
+            sub_keys[0, k] = keys[c, sel[c, k]]
+            for j in range(4):
+                sub_rects[0, k, j] = rects[c, sel[c, k], j]
+        order, _ = depth_order(sub_keys, sub_rects)
+        for k in range(n):
+            i = sel[c, order[0, k]]
+            for ty in range(rects[c, i, 2] // TILE, rects[c, i, 3] // TILE + 1):
+                for tx in range(rects[c, i, 0] // TILE, rects[c, i, 1] // TILE + 1):
+                    t = ty * tiles_x + tx
+                    if dirty[c, t]:
+                        gauss[fill[c * T + t]] = i
+                        fill[c * T + t] += 1
+    return offsets, gauss
+
+
+@nb.njit(cache=True)
+def fill_colors(rgb, labels, depths, o_rgb, o_mask, o_depth, out):
+    """Per-Gaussian channel values of one camera: out [n, D] = 0, then RGB (rgb [n,3]) at ``o_rgb``, a one-hot
+    1 at ``o_mask + labels[i]`` and the depth at ``o_depth`` (each only where its offset is >= 0)."""
+    for i in range(out.shape[0]):
+        for d in range(out.shape[1]):
+            out[i, d] = 0.0
+        if o_rgb >= 0:
+            for ch in range(3):
+                out[i, o_rgb + ch] = rgb[i, ch]
+        if o_mask >= 0:
+            out[i, o_mask + labels[i]] = 1.0
+        if o_depth >= 0:
+            out[i, o_depth] = depths[i]

@@ -9,6 +9,8 @@ accept any leading batch dimensions.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -26,9 +28,52 @@ __all__ = [
 ]
 
 
+#: batches of at most this many quaternions (``[n, 4]``) take a scalar path: Python floats, the same IEEE
+#: operations in the same order as the numpy code (identical results, without numpy's per-call overhead)
+_SMALL = 8
+
+
+def _sum_order_is_sequential() -> bool:
+    """Whether ``np.add.reduce(x, axis=-1)`` over ``[n, 4]`` rows adds ``((a + b) + c) + d`` (the scalar
+    path's order); checked once at import on values where the orders differ, else the scalar path is off."""
+    rng = np.random.default_rng(12345)
+    for n in range(1, _SMALL + 1):
+        s = rng.uniform(0.0, 1.0, (64, n, 4)) * np.exp2(rng.integers(-30, 30, (64, n, 1)))
+        ref = np.stack([np.add.reduce(x, axis=-1) for x in s])
+        if not np.array_equal(ref, ((s[..., 0] + s[..., 1]) + s[..., 2]) + s[..., 3]):
+            return False
+    return True
+
+
+_SCALAR_OK = _sum_order_is_sequential()
+
+
+def _small(q: np.ndarray) -> bool:
+    return _SCALAR_OK and q.ndim == 2 and q.shape[1] == 4 and 0 < q.shape[0] <= _SMALL
+
+
+def _unit_rows(q: np.ndarray, eps: float) -> list[tuple[float, float, float, float]] | None:
+    """Scalar path of :func:`quat_normalize` on ``[n, 4]`` rows; None where the numpy path must decide
+    (non-finite or huge components)."""
+    out = []
+    for w, x, y, z in q.tolist():
+        if not max(abs(w), abs(x), abs(y), abs(z)) <= 1e150:
+            return None
+        n = math.sqrt(((w * w + x * x) + y * y) + z * z)
+        if n <= eps:
+            raise ValueError("quaternion is zero or not finite")
+        w, x, y, z = w / n, x / n, y / n, z / n
+        out.append((-w, -x, -y, -z) if w < 0 else (w, x, y, z))
+    return out
+
+
 def quat_normalize(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     """Unit quaternions with ``w >= 0`` (float64); ValueError for a (near-)zero or non-finite one."""
     q = np.asarray(q, dtype=np.float64)
+    if _small(q):
+        rows = _unit_rows(q, eps)
+        if rows is not None:
+            return np.array(rows)
     a = np.abs(q)
     if not np.isfinite(a).all():
         raise ValueError("quaternion is zero or not finite")
@@ -47,6 +92,12 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product ``a * b`` (rotation ``b`` first), not renormalised."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
+    if a.shape == b.shape and _small(a):
+        return np.array([
+            (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+             aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+            for (aw, ax, ay, az), (bw, bx, by, bz) in zip(a.tolist(), b.tolist())
+        ])  # fmt: skip
     aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
     bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
     out = np.empty(np.broadcast_shapes(a.shape, b.shape))
@@ -60,6 +111,13 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """``[..., 4] -> [..., 3, 3]`` (renormalises)."""
     q = quat_normalize(q)
+    if _small(q):
+        return np.array([
+            ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+             (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+             (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+            for w, x, y, z in q.tolist()
+        ])  # fmt: skip
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     r = np.empty(q.shape[:-1] + (3, 3))
     r[..., 0, 0] = 1 - 2 * (y * y + z * z)

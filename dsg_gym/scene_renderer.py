@@ -226,8 +226,9 @@ class SceneRenderer:
             s, e = self._slices[k], self._slices[k + 1]
             if e == s:
                 continue
+            tmask = st["tile_masks"][k]  # the tiles the object reached until now
             if dirty is not None:
-                I.mark_tiles(st["proj"].rects[:, s:e], self.tiles_x, self.tiles_y, dirty)
+                dirty |= tmask
             t, q, Rm = t_all[k], q_all[k], R_all[k]
             I.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
                               st["quats"][s:e])
@@ -241,8 +242,10 @@ class SceneRenderer:
                     I.sh_to_rgb(st["means"][s:e], Rm, self._campos[v], self._obj_sh[s:e], self._sh_degree, rgb)
                 I.fill_colors(rgb, self._obj_label[s:e], pr.depths[v], layout[1], layout[2], layout[3],
                               st["colors"][v, s:e])
+            tmask[:] = False
+            I.mark_tiles(pr.rects, self.tiles_x, self.tiles_y, tmask)
             if dirty is not None:
-                I.mark_tiles(pr.rects, self.tiles_x, self.tiles_y, dirty)
+                dirty |= tmask
 
     def render(self, poses, *, rgb: bool = True, mask: bool = True, depth: bool = False,
                incremental: bool = True) -> RenderOutput:
@@ -261,7 +264,9 @@ class SceneRenderer:
                                      np.zeros((self.V, n, 4), np.int32)),
                   "colors": np.zeros((self.V, n, max(layout[0], 1)), np.float32),
                   "out": np.zeros((self.V, self.height, self.width, max(layout[0], 1)), np.float32),
-                  "T": np.ones((self.V, self.height, self.width), np.float32)}
+                  "T": np.ones((self.V, self.height, self.width), np.float32),
+                  # per object: the tiles its Gaussians' rectangles touch at its current pose
+                  "tile_masks": np.zeros((self.K, self.V, self.tiles_x * self.tiles_y), np.bool_)}
             st["bg_colors"] = self._colors(layout, self._bg_rgb, np.zeros(self.background.num, np.int64),
                                            self._bg.depths)
             moved = list(range(self.K))
@@ -284,8 +289,9 @@ class SceneRenderer:
             if dirty is None:
                 b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
             else:  # only the recomposited tiles' lists are read
+                active = (st["tile_masks"] & dirty).reshape(self.K, -1).any(axis=1)
                 b_off, b_gauss = I.bin_tiles(st["proj"].depths.view(np.uint32), st["proj"].rects, dirty,
-                                             self.tiles_x, self.tiles_y)
+                                             self.tiles_x, self.tiles_y, self._slices, active)
             a, b = self._bg, st["proj"]
             args = (tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths, self._bg_bins[0],
                     self._bg_bins[1], b.means2d, b.conics, self._obj_opac, st["colors"], b.rects, b.depths, b_off,

@@ -17,6 +17,9 @@ import numpy as np
 from ._numba_raster import _FASTMATH, TILE, _bits, _row_span, depth_order, splat_forward, store_tile, tile_state
 from .sh import C0, C1, C2, C3
 
+_TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS
+assert 1 << _TILE_BITS == TILE
+
 
 @nb.njit(cache=True, inline="always")
 def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, amin,
@@ -314,14 +317,16 @@ def finish_tiles(tiles, tiles_x, tiles_y, width, height, out, T, bg_rgb, o_rgb, 
 
 
 @nb.njit(cache=True)
-def bin_tiles(keys, rects, dirty, tiles_x, tiles_y):
+def bin_tiles(keys, rects, dirty, tiles_x, tiles_y, slices, active):
     """Per-tile depth-ordered Gaussian lists of the tiles flagged in ``dirty`` [C, T] only.
 
-    keys [C,N] unsigned ints that order like the depths, rects [C,N,4] (x1 < x0: culled). Returns
-    ``tile_offsets [C*T+1]`` (CSR; tiles not flagged get empty lists) and ``tile_gauss`` int32. A
-    flagged tile's list equals the one ``_numba_raster.bin_gaussians`` builds from ``depth_order``
-    (depth order, ties in index order): the same stable sort, applied to the Gaussians that reach a
-    flagged tile only (a stable sort of a subsequence is the subsequence of the stable sort).
+    keys [C,N] unsigned ints that order like the depths, rects [C,N,4] (x1 < x0: culled); the N
+    Gaussians are K objects' consecutive ranges ``slices`` [K+1], and only the objects flagged in
+    ``active`` [K] are looked at (the others must reach no flagged tile). Returns ``tile_offsets
+    [C*T+1]`` (CSR; tiles not flagged get empty lists) and ``tile_gauss`` int32. A flagged tile's list
+    equals the one ``_numba_raster.bin_gaussians`` builds from ``depth_order`` (depth order, ties in
+    index order): the same stable sort, applied to the Gaussians that reach a flagged tile only (a
+    stable sort of a subsequence is the subsequence of the stable sort).
     """
     C = rects.shape[0]
     N = rects.shape[1]
@@ -331,21 +336,25 @@ def bin_tiles(keys, rects, dirty, tiles_x, tiles_y):
     nsel = np.zeros(C, dtype=np.int64)
     for c in range(C):
         n = 0
-        for i in range(N):
-            x0 = rects[c, i, 0]
-            x1 = rects[c, i, 1]
-            if x1 < x0:
+        dc = dirty[c]
+        for k in range(active.shape[0]):
+            if not active[k]:
                 continue
-            hit = False
-            for ty in range(rects[c, i, 2] // TILE, rects[c, i, 3] // TILE + 1):
-                for tx in range(x0 // TILE, x1 // TILE + 1):
-                    t = ty * tiles_x + tx
-                    if dirty[c, t]:
-                        counts[c * T + t] += 1
-                        hit = True
-            if hit:
-                sel[c, n] = i
-                n += 1
+            for i in range(slices[k], slices[k + 1]):
+                x0 = rects[c, i, 0]
+                x1 = rects[c, i, 1]
+                if x1 < x0:
+                    continue
+                hit = False
+                for ty in range(rects[c, i, 2] >> _TILE_BITS, (rects[c, i, 3] >> _TILE_BITS) + 1):
+                    for tx in range(x0 >> _TILE_BITS, (x1 >> _TILE_BITS) + 1):
+                        t = ty * tiles_x + tx
+                        if dc[t]:
+                            counts[c * T + t] += 1
+                            hit = True
+                if hit:
+                    sel[c, n] = i
+                    n += 1
         nsel[c] = n
     offsets = np.zeros(C * T + 1, dtype=np.int64)
     for t in range(C * T):
@@ -354,6 +363,7 @@ def bin_tiles(keys, rects, dirty, tiles_x, tiles_y):
     fill = offsets[:-1].copy()
     for c in range(C):
         n = nsel[c]
+        dc = dirty[c]
         sub_keys = np.empty((1, n), dtype=keys.dtype)
         sub_rects = np.empty((1, n, 4), dtype=rects.dtype)
         for k in range(n):
@@ -363,10 +373,10 @@ def bin_tiles(keys, rects, dirty, tiles_x, tiles_y):
         order, _ = depth_order(sub_keys, sub_rects)
         for k in range(n):
             i = sel[c, order[0, k]]
-            for ty in range(rects[c, i, 2] // TILE, rects[c, i, 3] // TILE + 1):
-                for tx in range(rects[c, i, 0] // TILE, rects[c, i, 1] // TILE + 1):
+            for ty in range(rects[c, i, 2] >> _TILE_BITS, (rects[c, i, 3] >> _TILE_BITS) + 1):
+                for tx in range(rects[c, i, 0] >> _TILE_BITS, (rects[c, i, 1] >> _TILE_BITS) + 1):
                     t = ty * tiles_x + tx
-                    if dirty[c, t]:
+                    if dc[t]:
                         gauss[fill[c * T + t]] = i
                         fill[c * T + t] += 1
     return offsets, gauss

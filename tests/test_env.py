@@ -225,3 +225,22 @@ def test_stable_baselines3_check_env_and_ppo():
     model = sb3.PPO("MultiInputPolicy", env, n_steps=64, batch_size=32, n_epochs=1, seed=0, device="cpu")
     model.learn(total_timesteps=256)
     assert model.num_timesteps >= 256
+
+
+def test_small_quaternion_path_matches_numpy(monkeypatch):
+    """The scalar path of dsg_gym.poses (small batches, the env's hot path) gives the numpy path's bits."""
+    from dsg_gym import poses
+
+    rng = np.random.default_rng(0)
+    qs = [rng.normal(size=(n, 4)) * s for n in (1, 2, 5, 8) for s in (1e-6, 1.0, 1e4) for _ in range(20)]
+    qs += [np.array([[-0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0]]), np.array([[1e160, 1.0, 0.0, 0.0]])]
+    funcs = (poses.quat_normalize, poses.quat_to_rotmat, lambda q: poses.quat_multiply(q, q[::-1]))
+    fast = [[f(q) for f in funcs] for q in qs]
+    monkeypatch.setattr(poses, "_SCALAR_OK", False)
+    slow = [[f(q) for f in funcs] for q in qs]
+    for a, b in zip(fast, slow):
+        for x, y in zip(a, b):
+            assert x.shape == y.shape and x.tobytes() == y.tobytes()
+    for bad in (np.zeros((2, 4)), np.array([[np.nan, 1.0, 0.0, 0.0]])):
+        with pytest.raises(ValueError):
+            poses.quat_normalize(bad)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["C0", "C1", "C2", "C3", "num_sh_bases", "rotate_sh", "sh_basis", "sh_rotation"]
+__all__ = ["C0", "C1", "C2", "C3", "basis_columns", "num_sh_bases", "rotate_sh", "sh_basis", "sh_rotation"]
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
@@ -26,22 +26,35 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
-def sh_basis(degree: int, dirs: np.ndarray) -> np.ndarray:
-    """The basis functions ``[M, K]`` (float64) at unit directions ``dirs`` ``[M, 3]``."""
-    k = num_sh_bases(degree)
-    d = np.asarray(dirs, dtype=np.float64)
-    x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    cols = [np.full_like(x, C0)]
+def basis_columns(degree: int, x, y, z, ones) -> list:
+    """The ``(degree + 1)^2`` basis functions at unit direction components ``x, y, z`` as a list of arrays
+    shaped like them (3DGS order and signs). Plain arithmetic only, so numpy arrays and torch tensors
+    (:func:`dsg_gym.splat.sh.spherical_harmonics`) share this one definition; ``ones``: ones like ``x``."""
+    cols = [ones * C0]
     if degree >= 1:
         cols += [-C1 * y, C1 * z, -C1 * x]
     if degree >= 2:
         xx, yy, zz = x * x, y * y, z * z
-        cols += [C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * zz - xx - yy), C2[3] * x * z, C2[4] * (xx - yy)]
+        xy, yz, xz = x * y, y * z, x * z
+        cols += [C2[0] * xy, C2[1] * yz, C2[2] * (2.0 * zz - xx - yy), C2[3] * xz, C2[4] * (xx - yy)]
     if degree >= 3:
-        cols += [C3[0] * y * (3 * xx - yy), C3[1] * x * y * z, C3[2] * y * (4 * zz - xx - yy),
-                 C3[3] * z * (2 * zz - 3 * xx - 3 * yy), C3[4] * x * (4 * zz - xx - yy), C3[5] * z * (xx - yy),
-                 C3[6] * x * (xx - 3 * yy)]
-    return np.stack(cols[:k], axis=1)
+        cols += [
+            C3[0] * y * (3.0 * xx - yy),
+            C3[1] * xy * z,
+            C3[2] * y * (4.0 * zz - xx - yy),
+            C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            C3[4] * x * (4.0 * zz - xx - yy),
+            C3[5] * z * (xx - yy),
+            C3[6] * x * (xx - 3.0 * yy),
+        ]
+    return cols[: num_sh_bases(degree)]
+
+
+def sh_basis(degree: int, dirs: np.ndarray) -> np.ndarray:
+    """The basis functions ``[M, K]`` (float64) at unit directions ``dirs`` ``[M, 3]``."""
+    d = np.asarray(dirs, dtype=np.float64)
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    return np.stack(basis_columns(degree, x, y, z, np.ones_like(x)), axis=1)
 
 
 def _sphere_points(n: int) -> np.ndarray:

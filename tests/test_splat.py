@@ -245,6 +245,23 @@ def test_spherical_harmonics_orthonormal():
     assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=1e-10)
 
 
+def test_spherical_harmonics_gradients_and_broadcasting():
+    """Per-camera directions [C, N, 3] against shared coefficients [1, N, K, 3]: value equals the explicit
+    sum over the basis columns, and autograd's gradients (coefficients and directions) pass gradcheck."""
+    from dsg_gym.sh_basis import basis_columns
+
+    g = torch.Generator().manual_seed(5)
+    dirs = torch.randn(2, 6, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    coeffs = torch.randn(1, 6, 16, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    for deg in (1, 2, 3):
+        got = spherical_harmonics(deg, dirs, coeffs)
+        u = dirs / dirs.norm(dim=-1, keepdim=True)
+        cols = basis_columns(deg, u[..., 0], u[..., 1], u[..., 2], torch.ones_like(u[..., 0]))
+        want = sum(c[..., None] * coeffs[..., i, :] for i, c in enumerate(cols))
+        assert got.shape == (2, 6, 3) and torch.allclose(got, want, atol=1e-12)
+        assert torch.autograd.gradcheck(lambda d, c: spherical_harmonics(deg, d, c), (dirs, coeffs))
+
+
 def test_sh_degree_zero_matches_dc_colour():
     s = random_scene(500, width=32, height=32, seed=2, channels=3)
     sh = torch.randn(500, 16, 3, generator=torch.Generator().manual_seed(0)) * 0.3

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..sh_basis import C0, C1, C2, C3, num_sh_bases, rotate_sh, sh_rotation  # noqa: F401  (re-exported)
+from ..sh_basis import C0, C1, C2, C3, basis_columns, num_sh_bases, rotate_sh, sh_rotation  # noqa: F401  (re-exported)
 
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
@@ -39,27 +39,17 @@ def spherical_harmonics(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor) -
         raise ValueError(f"coeffs has {coeffs.shape[-2]} bases, degree {degree} needs {k}")
     if dirs.shape[-1] != 3:
         raise ValueError(f"dirs must have shape [..., 3], got {tuple(dirs.shape)}")
-    out = C0 * coeffs[..., 0, :]
     if degree == 0:
-        return out
+        return C0 * coeffs[..., 0, :]
+    basis = _basis(degree, dirs)  # [..., k]
+    # one batched [1, k] x [k, D] product: its backward is two more, where indexing each coefficient
+    # (coeffs[..., i, :]) would allocate and fill a full-size zero gradient per coefficient
+    return torch.matmul(basis.unsqueeze(-2), coeffs[..., :k, :]).squeeze(-2)
+
+
+def _basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """``[..., (degree + 1)^2]`` basis functions at ``dirs [..., 3]`` (normalised here; zero -> constant)."""
     norm = dirs.norm(dim=-1, keepdim=True)
     d = dirs / torch.where(norm > 0, norm, torch.ones_like(norm))
-    x, y, z = d[..., 0:1], d[..., 1:2], d[..., 2:3]
-    out = out - C1 * y * coeffs[..., 1, :] + C1 * z * coeffs[..., 2, :] - C1 * x * coeffs[..., 3, :]
-    if degree == 1:
-        return out
-    xx, yy, zz = x * x, y * y, z * z
-    xy, yz, xz = x * y, y * z, x * z
-    out = (out + C2[0] * xy * coeffs[..., 4, :] + C2[1] * yz * coeffs[..., 5, :]
-           + C2[2] * (2.0 * zz - xx - yy) * coeffs[..., 6, :] + C2[3] * xz * coeffs[..., 7, :]
-           + C2[4] * (xx - yy) * coeffs[..., 8, :])
-    if degree == 2:
-        return out
-    return (out + C3[0] * y * (3.0 * xx - yy) * coeffs[..., 9, :]
-            + C3[1] * xy * z * coeffs[..., 10, :]
-            + C3[2] * y * (4.0 * zz - xx - yy) * coeffs[..., 11, :]
-            + C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * coeffs[..., 12, :]
-            + C3[4] * x * (4.0 * zz - xx - yy) * coeffs[..., 13, :]
-            + C3[5] * z * (xx - yy) * coeffs[..., 14, :]
-            + C3[6] * x * (xx - 3.0 * yy) * coeffs[..., 15, :])
-
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    return torch.stack(basis_columns(degree, x, y, z, torch.ones_like(x)), dim=-1)

@@ -44,7 +44,8 @@ def spherical_harmonics(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor) -
     basis = _basis(degree, dirs)  # [..., k]
     # one batched [1, k] x [k, D] product: its backward is two more, where indexing each coefficient
     # (coeffs[..., i, :]) would allocate and fill a full-size zero gradient per coefficient
-    return torch.matmul(basis.unsqueeze(-2), coeffs[..., :k, :]).squeeze(-2)
+    used = coeffs if coeffs.shape[-2] == k else coeffs[..., :k, :]  # a slice's backward fills a zero tensor
+    return torch.matmul(basis.unsqueeze(-2), used).squeeze(-2)
 
 
 def _basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:

@@ -187,12 +187,11 @@ class SegmentedField(nn.Module):
                 means, quats = rigid_transform_gaussians(means, quats, T)
                 rot = T[..., :3, :3].to(means.dtype)
         deg = self.max_sh_degree if sh_degree is None else min(int(sh_degree), self.max_sh_degree)
-        k = (deg + 1) ** 2
         campos = torch.linalg.inv(viewmats.detach())[:, :3, 3]
         dirs = means[None, :, :] - campos[:, None, :]
         if rot is not None and deg > 0:  # view direction into each Gaussian's own (unmoved) frame: R^T d
             dirs = dirs @ rot if rot.dim() == 2 else torch.einsum("cnj,nji->cni", dirs, rot)
-        rgb = torch.clamp_min(spherical_harmonics(deg, dirs, sh[None, :, :k, :]) + 0.5, 0.0)  # [C,N,3]
+        rgb = torch.clamp_min(spherical_harmonics(deg, dirs, sh[None]) + 0.5, 0.0)  # [C,N,3] (first k bases)
         C = viewmats.shape[0]
         rgb = rgb.expand(C, -1, -1)
         cols = torch.cat([rgb, feats[None].expand(C, -1, -1)], dim=-1) if with_features else rgb

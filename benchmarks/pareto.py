@@ -18,8 +18,9 @@ rendering, the same seeded episode for every point, interleaved rounds, median) 
 env's renderer at the test poses and cameras (PSNR and SSIM as ``dsg-eval``, mask IoU of the env's mask).
 Writes ``DIR/pareto.json``, ``DIR/pareto.md`` and ``DIR/pareto.png`` (step time against PSNR, Pareto front
 marked) and the recommended renderer settings (``recommended`` in the JSON; rule in ``recommended.rule``).
-The bundled world's ground truth is ``two_blocks`` regenerated with the lighting it was trained under
-(``world_lighting``: bit for bit the images it was trained on; the generator's own test cameras). The seven scenes have no trained worlds (about 30 min of
+The bundled world's ground truth is ``two_blocks`` regenerated with the lighting and supersampling it was
+trained under (``world_generator_settings``: bit for bit the images it was trained on; the generator's own
+test cameras). The seven scenes have no trained worlds (about 30 min of
 training each), so their geometry worlds (``train_world.geom_world``, baked under the generator's default
 lighting) stand in (``--scenes none`` skips them). ``--training`` adds novel-state PSNR
 against training wall-clock for the three ``dsg-train`` presets (``benchmarks.pareto_training``, heavy:
@@ -75,22 +76,25 @@ def _git() -> str:
     return head + (f" + uncommitted changes in {', '.join(dirty)}" if dirty else "")
 
 
-def world_lighting(world) -> str:
-    """The dsg-synth lighting a world was trained under: ``metadata.source.generator.lighting``; worlds
-    without it come from generator 1.0, whose strong world-fixed lights 1.1 reproduces bit for bit with
-    ``"spot"``. (Geometry worlds bake their colours under the generator's default lights.)"""
+def world_generator_settings(world) -> dict:
+    """The ``GenerateConfig`` image settings of the dsg-synth capture a world was trained on, from
+    ``metadata.source.generator``: ``lighting`` and ``supersample``. Missing keys mean an older generator:
+    no lighting recorded = 1.0, whose strong world-fixed lights 1.1 reproduces bit for bit with ``"spot"``;
+    no supersample recorded = before 1.2, one point sample per pixel. (Geometry worlds bake their colours
+    under the generator's defaults.)"""
     src = world.metadata.get("source") or {}
     gen = src.get("generator") if isinstance(src, dict) else None
-    return str(gen.get("lighting", "spot")) if isinstance(gen, dict) else "spot"
+    gen = gen if isinstance(gen, dict) else {}
+    return {"lighting": str(gen.get("lighting", "spot")), "supersample": int(gen.get("supersample", 1))}
 
 
-def _capture(work: Path, scene: str, quick: bool, lighting: str | None = None) -> Path:
-    """A ``dsg-synth`` capture of ``scene`` (seed 0, 128x128, the generator's test cameras; ``lighting``:
-    the generator's default unless given)."""
+def _capture(work: Path, scene: str, quick: bool, settings: dict | None = None) -> Path:
+    """A ``dsg-synth`` capture of ``scene`` (seed 0, 128x128, the generator's test cameras; ``settings``:
+    ``GenerateConfig`` fields such as lighting and supersampling, the generator's defaults unless given)."""
     from train_world.synth.generate import GenerateConfig, generate_scene
 
-    kw = {} if lighting is None else {"lighting": lighting}
-    out = work / (scene if lighting is None else f"{scene}_{lighting}")
+    kw = dict(settings or {})
+    out = work / "_".join([scene] + [f"{k}-{v}" for k, v in sorted(kw.items())])
     if not (out / "scene.json").is_file():
         generate_scene(scene, out, GenerateConfig(seed=0, views=8 if quick else 48, progress=False, **kw))
     return out
@@ -211,7 +215,7 @@ def run_bundled(args, work: Path) -> tuple[dict, dict | None, list[C.Point]]:
     from dsg_gym.world_model import WorldModel
 
     world = WorldModel.load(DEFAULT_WORLD).without_features()
-    cap = _capture(work, "two_blocks", args.quick, world_lighting(world))
+    cap = _capture(work, "two_blocks", args.quick, world_generator_settings(world))
     test = C.load_test_states(cap, world.object_ids, max_views=4 if args.quick else None)
     for s, P in test.poses.items():
         if s in world.states and not np.allclose(world.states[s], P, atol=1e-9):
@@ -230,7 +234,7 @@ def run_bundled(args, work: Path) -> tuple[dict, dict | None, list[C.Point]]:
     gen = json.loads((cap / "scene.json").read_text())["generator"]
     res = {
         "capture": {k: gen.get(k) for k in ("name", "version", "seed", "width", "height", "test_views",
-                                            "test_states", "lighting")},
+                                            "test_states", "lighting", "supersample")},
         "world": str(DEFAULT_WORLD.relative_to(REPO)) if DEFAULT_WORLD.is_relative_to(REPO) else str(DEFAULT_WORLD),
         "kind": "trained DSG-World (B+C+P), compacted by dsg-compact",
         "scene": "two_blocks",

@@ -229,11 +229,17 @@ def test_quick_run_writes_json_markdown_and_png(tmp_path):
     assert not list(out.glob(".*"))  # no temporary files left
 
 
-def test_world_lighting_reads_the_generator_or_falls_back_to_generator_1_0():
+def test_world_generator_settings_read_the_generator_or_fall_back_to_older_ones():
     from types import SimpleNamespace
 
-    from benchmarks.pareto import world_lighting
+    from benchmarks.pareto import world_generator_settings as settings
 
-    assert world_lighting(SimpleNamespace(metadata={"source": {"generator": {"lighting": "soft"}}})) == "soft"
-    assert world_lighting(SimpleNamespace(metadata={"source": {"kind": "capture"}})) == "spot"
-    assert world_lighting(SimpleNamespace(metadata={})) == "spot"
+    def world(meta):
+        return SimpleNamespace(metadata=meta)
+
+    assert settings(world({"source": {"generator": {"lighting": "soft", "supersample": 4}}})) == {
+        "lighting": "soft", "supersample": 4}
+    # generator 1.1 recorded its lighting but no supersampling: one point sample per pixel
+    assert settings(world({"source": {"generator": {"lighting": "soft"}}})) == {"lighting": "soft", "supersample": 1}
+    assert settings(world({"source": {"kind": "capture"}})) == {"lighting": "spot", "supersample": 1}
+    assert settings(world({})) == {"lighting": "spot", "supersample": 1}

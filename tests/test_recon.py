@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import pytest
@@ -230,6 +231,7 @@ def test_cli_help_and_quick_run(tiny, tmp_path, capsys):
     assert w.metadata["heldout_views"] == [0, 8] and len(w.cameras["state1"]) == 16
     gen = w.metadata["source"]["generator"]  # what regenerates the ground truth of a synthetic capture
     assert gen["name"] == "dsg-synth" and gen["lighting"] in ("soft", "spot") and "seed" in gen
+    assert gen["supersample"] == json.loads((tiny / "scene.json").read_text())["generator"]["supersample"]
     n = w.background.num + sum(o.gaussians.num for o in w.objects.values())
     assert n == w.metadata["num_gaussians"]
     assert (tmp_path / "w.dsgw.ckpt").exists()

@@ -208,15 +208,11 @@ class SceneRenderer:
         return (d, *offs)
 
     def _colors(self, layout, rgb_vals, labels, depths) -> np.ndarray:
-        D, o_rgb, o_mask, o_depth = layout
-        n = labels.shape[0]
-        col = np.zeros((self.V, n, max(D, 1)), np.float32)
-        if o_rgb >= 0:
-            col[:, :, o_rgb:o_rgb + 3] = rgb_vals
-        if o_mask >= 0:
-            col[:, np.arange(n), o_mask + labels] = 1.0
-        if o_depth >= 0:
-            col[:, :, o_depth] = depths
+        """``[V, n, D]`` per-Gaussian channels (:func:`_numba_incremental.fill_colors` per camera) from
+        rgb_vals [V, n, 3], labels [n] and depths [V, n]."""
+        col = np.empty((self.V, labels.shape[0], max(layout[0], 1)), np.float32)
+        for v in range(self.V):
+            I.fill_colors(rgb_vals[v], labels, depths[v], layout[1], layout[2], layout[3], col[v])
         return col
 
     def _update_objects(self, st, poses, moved, layout, dirty) -> None:

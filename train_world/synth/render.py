@@ -89,7 +89,8 @@ class SceneRenderer:
         out_rgb = self._render_rgb(data) if rgb else None
         raw = None
         if seg or depth:
-            r.update_scene(data, camera=self.built.camera_id)
+            if r is not self._rgb_renderer or not rgb:  # else the RGB pass has just updated its scene
+                r.update_scene(data, camera=self.built.camera_id)
             r.enable_segmentation_rendering()
             raw = r.render()
             r.disable_segmentation_rendering()

@@ -24,6 +24,7 @@ from .gaussians import GaussianSet
 from .splat import _numba_incremental as I
 from .splat import _numba_project as P
 from .splat import _numba_raster as R
+from .splat.rasterize import RASTERIZE_MODES
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,14 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near,
     return out
 
 
+def _antialias(conics: np.ndarray, opacities: np.ndarray) -> np.ndarray:
+    """Per-camera opacities ``[V, n]`` after the Mip filter (one kernel for every renderer)."""
+    out = np.empty(conics.shape[:2], np.float32)
+    kernel = P.antialias_opacities if out.size > 20_000 else P.antialias_opacities_serial
+    kernel(conics, opacities, out)
+    return out
+
+
 def _bins(proj: _Projected, tiles_x: int, tiles_y: int):
     order, counts = R.depth_order(proj.depths.view(np.uint32), proj.rects)
     offsets, gauss, _, _ = R.bin_gaussians(proj.rects, order, counts, tiles_x, tiles_y)
@@ -123,6 +132,8 @@ class SceneRenderer:
         t_min: a pixel stops compositing once its transmittance would drop below this (default 1e-4).
         sh_degree: highest SH degree evaluated (``None``: all the Gaussians carry; lower is cheaper
             and drops view-dependent detail).
+        rasterize_mode: "classic" or "antialiased" (the Mip filter of :func:`dsg_gym.splat.rasterize`);
+            a world must be rendered in the mode it was trained with (``World.rasterize_mode``).
 
     Raising ``alpha_min``/``t_min`` or lowering ``sh_degree`` trades accuracy for speed
     (``benchmarks/pareto.py`` measures the trade).
@@ -131,7 +142,10 @@ class SceneRenderer:
     def __init__(self, background: GaussianSet, objects: Sequence[GaussianSet], viewmats, Ks, width: int,
                  height: int, background_color=(0.0, 0.0, 0.0), near_plane: float = 0.01,
                  far_plane: float = 1e10, alpha_min: float = R.ALPHA_MIN, t_min: float = R.T_MIN,
-                 sh_degree: int | None = None):
+                 sh_degree: int | None = None, rasterize_mode: str = "classic"):
+        if rasterize_mode not in RASTERIZE_MODES:
+            raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+        self.rasterize_mode = rasterize_mode
         self._consts = R.make_consts(np.float32, alpha_min, t_min)
         self.alpha_min, self.t_min = float(alpha_min), float(t_min)
         self.background = background
@@ -188,7 +202,9 @@ class SceneRenderer:
                             self.viewmats, self.Ks, self.width, self.height, self.near, self.far,
                             self.alpha_min)
         self._bg_bins = _bins(self._bg, self.tiles_x, self.tiles_y)
-        self._bg_opac = np.ascontiguousarray(bg.opacities, np.float32)
+        self._bg_opac = np.ascontiguousarray(bg.opacities, np.float32)[None]  # [1 or V, n]
+        if self.rasterize_mode == "antialiased":
+            self._bg_opac = _antialias(self._bg.conics, self._bg_opac)
         self._bg_rgb = np.empty((self.V, bg.num, 3), np.float32)
         sh = np.zeros((bg.num, (self._sh_degree + 1) ** 2, 3), np.float32)
         m = min(sh.shape[1], bg.sh.shape[1])
@@ -232,6 +248,8 @@ class SceneRenderer:
                           self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min)
             for f in ("means2d", "conics", "depths", "radii", "rects"):
                 getattr(st["proj"], f)[:, s:e] = getattr(pr, f)
+            if self.rasterize_mode == "antialiased":
+                st["opac"][:, s:e] = _antialias(pr.conics, self._obj_opac[None, s:e])
             rgb = self._rgb_scratch[:e - s]
             for v in range(self.V):
                 if layout[1] >= 0:
@@ -259,6 +277,9 @@ class SceneRenderer:
                                      np.zeros((self.V, n), np.float32), np.zeros((self.V, n, 2), np.int32),
                                      np.zeros((self.V, n, 4), np.int32)),
                   "colors": np.zeros((self.V, n, max(layout[0], 1)), np.float32),
+                  # the objects' opacities as composited: per camera after the Mip filter
+                  "opac": (np.zeros((self.V, n), np.float32) if self.rasterize_mode == "antialiased"
+                           else self._obj_opac[None]),
                   "out": np.zeros((self.V, self.height, self.width, max(layout[0], 1)), np.float32),
                   "T": np.ones((self.V, self.height, self.width), np.float32),
                   # per object: the tiles its Gaussians' rectangles touch at its current pose
@@ -290,7 +311,7 @@ class SceneRenderer:
                                              self.tiles_x, self.tiles_y, self._slices, active)
             a, b = self._bg, st["proj"]
             args = (tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths, self._bg_bins[0],
-                    self._bg_bins[1], b.means2d, b.conics, self._obj_opac, st["colors"], b.rects, b.depths, b_off,
+                    self._bg_bins[1], b.means2d, b.conics, st["opac"], st["colors"], b.rects, b.depths, b_off,
                     b_gauss, self.tiles_x, self.tiles_y, self.width, self.height, self._consts)
             # incremental: pixels that no object reaches come from the background-only render
             cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
@@ -308,7 +329,7 @@ class SceneRenderer:
         a, b = self._bg, st["proj"]
         none = np.zeros(tiles.size + 1, np.int64)
         I.composite_merged(tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths,
-                           self._bg_bins[0], self._bg_bins[1], b.means2d, b.conics, self._obj_opac, st["colors"],
+                           self._bg_bins[0], self._bg_bins[1], b.means2d, b.conics, st["opac"], st["colors"],
                            b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width, self.height,
                            self._consts, False, st["bg_out"], st["bg_T"], st["bg_out"], st["bg_T"])
 

@@ -18,7 +18,8 @@ tensor                                 shape / dtype        meaning
 
 ``<field>`` is ``means quats scales opacities sh features labels`` and optionally ``opacity_logits
 log_scales`` (the exact raw values). The JSON document lists the objects ``[{id, name, class}]``, the states,
-camera sizes, units, ``metadata`` (training config, source, ...) and a SHA-256 of the tensor bytes, so a
+camera sizes, units, ``metadata`` (training config, source, ``rasterize_mode``: "classic" when absent, or
+"antialiased" for worlds trained with the Mip filter, see :func:`dsg_gym.splat.rasterize`) and a SHA-256 of the tensor bytes, so a
 truncated or altered file is refused with :class:`WorldFormatError`, as is an unknown format version.
 """
 
@@ -54,6 +55,7 @@ __all__ = [
 ]
 
 FORMAT_NAME = "dsg-world"
+RASTERIZE_MODES = ("classic", "antialiased")  # as dsg_gym.splat.RASTERIZE_MODES (this module loads without torch)
 FORMAT_VERSION = 1
 GAUSSIAN_FIELDS = ("means", "quats", "scales", "opacities", "sh", "features", "labels")
 OPTIONAL_FIELDS = ("opacity_logits", "log_scales")
@@ -104,6 +106,11 @@ class World:
             self.classifier_weight.shape[0],
         ):
             raise ValueError("World: classifier weight must be [K+1, F] and bias [K+1]")
+
+    @property
+    def rasterize_mode(self) -> str:
+        """The splat mode the world was trained in and must be rendered in ("classic" or "antialiased")."""
+        return str(self.metadata.get("rasterize_mode", "classic"))
 
     @property
     def object_ids(self) -> tuple[int, ...]:
@@ -243,6 +250,9 @@ def _build(arrays: dict[str, np.ndarray], doc: dict, version: int) -> World:
         )
         for s, c in doc["cameras"].items()
     }
+    mode = doc.get("metadata", {}).get("rasterize_mode", "classic")
+    if mode not in RASTERIZE_MODES:
+        raise WorldFormatError(f"unknown rasterize_mode {mode!r} in the world metadata (known: {RASTERIZE_MODES})")
     return World(
         background=_gaussian_set(arrays, "gaussians/background"),
         objects=MappingProxyType(objects),

@@ -147,6 +147,12 @@ class WorldModel:
         return len(self.objects)
 
     @property
+    def rasterize_mode(self) -> str:
+        """The splat mode the world was trained in ("classic" or "antialiased", ``metadata["rasterize_mode"]``);
+        every renderer of the world must use it."""
+        return str(self.metadata.get("rasterize_mode", "classic"))
+
+    @property
     def num_gaussians(self) -> int:
         return self.background.num + sum(o.num for o in self.objects)
 

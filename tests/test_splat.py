@@ -15,11 +15,12 @@ from dsg_gym.splat.scenes import intrinsics, random_scene
 DIFF_ARGS = ("means", "quats", "scales", "opacities", "colors")
 
 
-def _render_with_grads(scene, backend, render_mode="RGB", backgrounds=None, seed=1):
+def _render_with_grads(scene, backend, render_mode="RGB", backgrounds=None, seed=1, rasterize_mode="classic"):
     leaves = {k: scene[k].clone().requires_grad_(True) for k in DIFF_ARGS}
     bg = None if backgrounds is None else backgrounds.clone().requires_grad_(True)
     kw = {**scene, **leaves}
-    out, alpha, meta = rasterize(**kw, backgrounds=bg, render_mode=render_mode, backend=backend)
+    out, alpha, meta = rasterize(**kw, backgrounds=bg, render_mode=render_mode, backend=backend,
+                                 rasterize_mode=rasterize_mode)
     meta["means2d"].retain_grad()
     g = torch.Generator().manual_seed(seed)
     w_out = torch.randn(out.shape, generator=g, dtype=out.dtype)
@@ -91,26 +92,69 @@ def test_torch_tiling_equals_dense_oracle():
     assert (full[0] - dense[0]).abs().max() <= 1e-6
 
 
+def test_antialiased_numba_matches_torch_reference():
+    scene = random_scene(1500, width=48, height=40, seed=11, cameras=2, scale_range=(0.002, 0.05))
+    a = _render_with_grads(scene, "numba", "RGB+D", rasterize_mode="antialiased")
+    b = _render_with_grads(scene, "torch", "RGB+D", rasterize_mode="antialiased")
+    c = _render_with_grads(scene, "numba", "RGB+D")
+    assert (a[0][..., :-1] - b[0][..., :-1]).abs().max() <= 1e-5
+    assert (a[0][..., -1] - b[0][..., -1]).abs().max() <= 1e-5 * b[0][..., -1].abs().max()
+    assert (a[1] - b[1]).abs().max() <= 1e-5
+    _assert_grads_close(a[3], b[3])
+    # Filtering only ever lowers opacity, and it changes the image where Gaussians are small.
+    assert bool((a[2]["opacities"] <= scene["opacities"][None] + 1e-7).all())
+    assert float((a[0] - c[0]).abs().max()) > 0.05
+    assert float(a[1].mean()) < float(c[1].mean())
+
+
+def test_antialiasing_factor_is_the_determinant_ratio():
+    """Opacity x sqrt(det Sigma / det(Sigma + 0.3 I)), from the 2D covariance of one projected Gaussian."""
+    from dsg_gym.splat._numba_project import BLUR
+
+    for scale, rot in ((0.01, (1.0, 0.0, 0.0, 0.0)), (0.05, (0.9, 0.3, -0.2, 0.1)), (0.3, (0.6, 0.0, 0.8, 0.0))):
+        out = _single([0.05, -0.02, 2.0], [scale, 0.4 * scale, 1.5 * scale], 0.7, [1.0, 1.0, 1.0], quat=rot,
+                      rasterize_mode="antialiased")
+        cn = out[2]["conics"][0, 0].double()
+        sig = torch.linalg.inv(torch.tensor([[cn[0], cn[1]], [cn[1], cn[2]]]))  # blurred covariance
+        want = 0.7 * math.sqrt(float(torch.det(sig - BLUR * torch.eye(2, dtype=torch.float64)) / torch.det(sig)))
+        assert abs(float(out[2]["opacities"][0, 0]) - want) <= 1e-5
+    # A Gaussian much smaller than a pixel keeps its integrated weight (~ o * 2 pi sqrt(det Sigma)) instead of
+    # growing to the low-pass's size: total rendered alpha far below the classic mode's.
+    tiny = [0.0005, 0.0005, 0.0005]
+    aa = _single([0.0, 0.0, 2.0], tiny, 0.9, [1.0, 1.0, 1.0], rasterize_mode="antialiased")[1].sum()
+    classic = _single([0.0, 0.0, 2.0], tiny, 0.9, [1.0, 1.0, 1.0])[1].sum()
+    assert float(aa) < 0.1 * float(classic)
+
+
+def test_rasterize_mode_is_validated():
+    s = random_scene(5)
+    with pytest.raises(ValueError, match="rasterize_mode"):
+        rasterize(**s, rasterize_mode="mip")
+
+
 @pytest.mark.parametrize("backend", ["numba", "torch"])
-def test_gradcheck_float64(backend):
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+def test_gradcheck_float64(backend, mode):
     s = random_scene(6, width=12, height=10, channels=4, seed=3, dtype=torch.float64)
     bg = torch.rand(4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     fixed = {k: s[k] for k in ("viewmats", "Ks", "width", "height")}
 
     def f(means, quats, scales, opacities, colors, backgrounds):
         out, alpha, _ = rasterize(means, quats, scales, opacities, colors, **fixed, backgrounds=backgrounds,
-                                  render_mode="RGB+ED", backend=backend)
+                                  render_mode="RGB+ED", backend=backend, rasterize_mode=mode)
         return out, alpha
 
     inputs = [s[k].clone().requires_grad_(True) for k in DIFF_ARGS] + [bg.requires_grad_(True)]
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
-def _single(mean, scale, opacity, color, width=33, height=33, quat=(1.0, 0.0, 0.0, 0.0), backend="numba"):
+def _single(mean, scale, opacity, color, width=33, height=33, quat=(1.0, 0.0, 0.0, 0.0), backend="numba",
+            rasterize_mode="classic"):
     K = intrinsics(width, height)[None]
+    scale = list(scale) if isinstance(scale, (list, tuple)) else [scale] * 3
     return rasterize(torch.tensor([mean], dtype=torch.float32), torch.tensor([quat]),
-                     torch.tensor([[scale] * 3]), torch.tensor([opacity]), torch.tensor([color]),
-                     torch.eye(4)[None], K, width, height, backend=backend)
+                     torch.tensor([scale]), torch.tensor([opacity]), torch.tensor([color]),
+                     torch.eye(4)[None], K, width, height, backend=backend, rasterize_mode=rasterize_mode)
 
 
 @pytest.mark.parametrize("backend", ["numba", "torch"])

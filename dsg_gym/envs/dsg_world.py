@@ -301,7 +301,8 @@ class DSGWorldEnv(gym.Env):
         w = self.world
         return SceneRenderer(
             w.background, list(w.objects), cams.viewmats, cams.Ks, cams.width, cams.height,
-            background_color=self.background_color, **self.render_settings.kwargs(),
+            background_color=self.background_color, rasterize_mode=w.rasterize_mode,
+            **self.render_settings.kwargs(),
         )  # fmt: skip
 
     @property

@@ -17,8 +17,8 @@ import numba as _numba
 if "NUMBA_THREADING_LAYER" not in _os.environ and _numba.config.THREADING_LAYER == "default":
     _numba.config.THREADING_LAYER = "workqueue"
 
-from .rasterize import BACKENDS, RENDER_MODES, rasterize
+from .rasterize import BACKENDS, RASTERIZE_MODES, RENDER_MODES, rasterize
 from .sh import C0, num_sh_bases, rgb_to_sh0, sh0_to_rgb, spherical_harmonics
 
 __all__ = ["rasterize", "spherical_harmonics", "num_sh_bases", "rgb_to_sh0", "sh0_to_rgb", "C0",
-           "BACKENDS", "RENDER_MODES"]
+           "BACKENDS", "RASTERIZE_MODES", "RENDER_MODES"]

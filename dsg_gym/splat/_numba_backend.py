@@ -120,6 +120,38 @@ class _Composite(torch.autograd.Function):
         return v_means2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None
 
 
+class _Antialias(torch.autograd.Function):
+    """Forward with the runtime's kernel (same bits as ``SceneRenderer``), backward in closed form."""
+
+    @staticmethod
+    def forward(ctx, conics, opacities):
+        out = torch.empty(conics.shape[:2], dtype=conics.dtype)
+        P.antialias_opacities(_np(conics), _np(opacities), out.numpy())
+        ctx.save_for_backward(conics, opacities)
+        return out
+
+    @staticmethod
+    def backward(ctx, v_out):
+        conics, opacities = ctx.saved_tensors
+        c64 = conics.double()
+        ca, cb, cc = c64.unbind(-1)
+        b = P.BLUR
+        x = 1.0 - b * (ca + cc) + b * b * (ca * cc - cb * cb)
+        pos = x > 0
+        r = torch.sqrt(torch.where(pos, x, torch.ones_like(x)))
+        g = v_out.double()
+        v_op = torch.where(pos, g * r, torch.zeros_like(x))
+        k = torch.where(pos, g * opacities.double() / (2.0 * r), torch.zeros_like(x))  # d out / d x
+        v_conics = torch.stack([k * (b * b * cc - b), k * (-2.0 * b * b * cb), k * (b * b * ca - b)], dim=-1)
+        if opacities.shape[0] != conics.shape[0]:
+            v_op = v_op.sum(dim=0, keepdim=True)
+        return v_conics.to(conics.dtype), v_op.to(opacities.dtype)
+
+
+def antialias(conics, opacities):
+    return _Antialias.apply(conics, opacities)
+
+
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far):
     return _Project.apply(means, quats, scales, opacities, viewmats, Ks, width, height, near, far)
 

@@ -36,7 +36,7 @@ def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off
         y1 = min(b_rect[c, g, 3], py0 + ph - 1) - py0
         if xr1 < xr0:
             continue
-        logo = math.log(np.float64(b_op[g]) / np.float64(amin))
+        logo = math.log(np.float64(b_op[0 if b_op.shape[0] == 1 else c, g]) / np.float64(amin))
         for ly in range(y0, y1 + 1):
             dy = yc[ly] - b_m2[c, g, 1]
             x0, x1 = _row_span(b_cn[c, g, 0], b_cn[c, g, 1], b_cn[c, g, 2], b_m2[c, g, 0], np.float64(dy),
@@ -64,7 +64,7 @@ def composite_merged(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_g
                      tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
     """Recomposite the listed tiles (``tiles`` [M] of ``c * T + t``) into out_colors/out_T.
 
-    Per set: means2d [C,N,2], conics [C,N,3], opacities [N], colors [C,N,D], rects [C,N,4],
+    Per set: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in {1, C}), colors [C,N,D], rects [C,N,4],
     depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
 
     ``use_cache``: reuse a background-only render (bg_colors [C,H,W,D], bg_T [C,H,W]; ignored
@@ -82,6 +82,8 @@ def composite_merged(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_g
         px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
             ct - c * T, tiles_x, width, height, D, out_colors.dtype)
         npix = pw * ph
+        ca = 0 if a_op.shape[0] == 1 else c
+        cb = 0 if b_op.shape[0] == 1 else c
         ndone = 0
         if use_cache:
             ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, amin,
@@ -96,14 +98,14 @@ def composite_merged(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_g
                 g = a_gauss[i]
                 i += 1
                 ndone += splat_forward(consts, a_m2[c, g, 0], a_m2[c, g, 1], a_cn[c, g, 0], a_cn[c, g, 1],
-                                       a_cn[c, g, 2], a_op[g], a_rect[c, g, 0], a_rect[c, g, 1], a_rect[c, g, 2],
+                                       a_cn[c, g, 2], a_op[ca, g], a_rect[c, g, 0], a_rect[c, g, 1], a_rect[c, g, 2],
                                        a_rect[c, g, 3], a_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
                                        row_done)
             else:
                 g = b_gauss[j]
                 j += 1
                 ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
-                                       b_cn[c, g, 2], b_op[g], b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2],
+                                       b_cn[c, g, 2], b_op[cb, g], b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2],
                                        b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
                                        row_done)
         store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)

@@ -374,3 +374,40 @@ def project_backward(means, quats, scales, viewmats, Ks, width, height, radii,
         v_scales[i, 0] = gs0
         v_scales[i, 1] = gs1
         v_scales[i, 2] = gs2
+
+
+@nb.njit(cache=True)
+def _antialias_one(ca, cb, cc, o):
+    # det(Sigma) / det(Sigma + blur I) = det(I - blur * conic), conic = (Sigma + blur I)^-1.
+    x = 1.0 - BLUR * (ca + cc) + BLUR * BLUR * (ca * cc - cb * cb)
+    return o * math.sqrt(x) if x > 0.0 else 0.0
+
+
+@nb.njit(parallel=True, cache=True)
+def antialias_opacities(conics, opacities, out):
+    """Mip-Splatting's 2D Mip filter as gsplat's ``rasterize_mode="antialiased"``: each Gaussian's opacity
+    times ``sqrt(det Sigma / det(Sigma + BLUR I))``, which keeps a Gaussian's integrated weight when the
+    low-pass widens it (a sub-pixel Gaussian fades instead of growing to a pixel).
+
+    conics [C,N,3] (of the blurred covariance, as ``project_forward`` writes them), opacities [Co,N]
+    (Co in {1, C}); out [C,N] is overwritten. Culled Gaussians (conic 0) keep their opacity. float64
+    arithmetic without fast-math, so every caller gets the same bits.
+    """
+    C, N = conics.shape[0], conics.shape[1]
+    Co = opacities.shape[0]
+    for ci in nb.prange(C * N):
+        c = ci // N
+        i = ci - c * N
+        out[c, i] = _antialias_one(np.float64(conics[c, i, 0]), np.float64(conics[c, i, 1]),
+                                   np.float64(conics[c, i, 2]), np.float64(opacities[0 if Co == 1 else c, i]))
+
+
+@nb.njit(cache=True)
+def antialias_opacities_serial(conics, opacities, out):
+    """``antialias_opacities`` on one thread (a few thousand Gaussians)."""
+    C, N = conics.shape[0], conics.shape[1]
+    Co = opacities.shape[0]
+    for c in range(C):
+        for i in range(N):
+            out[c, i] = _antialias_one(np.float64(conics[c, i, 0]), np.float64(conics[c, i, 1]),
+                                       np.float64(conics[c, i, 2]), np.float64(opacities[0 if Co == 1 else c, i]))

@@ -87,6 +87,17 @@ def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, 
     return means2d, conics, pz, radii, rects
 
 
+def antialias(conics, opacities):
+    """Opacities ``[C,N]`` of the antialiased mode: ``opacities [Co,N]`` times ``sqrt(det(I - BLUR conic))``
+    (see ``_numba_project.antialias_opacities``); differentiable in both inputs. The factor is a difference
+    of nearly equal terms for sub-pixel Gaussians, so it is formed in float64 as the kernel does."""
+    ca, cb, cc = conics.double().unbind(-1)
+    x = 1.0 - BLUR * (ca + cc) + BLUR * BLUR * (ca * cc - cb * cb)
+    pos = x > 0
+    r = torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+    return (opacities.double() * r).to(opacities.dtype)
+
+
 def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, width, height,
               tile_size: int | None = 16):
     """Front-to-back compositing; colors [Cc,N,D], opacities [Co,N]; returns

@@ -25,7 +25,8 @@ import sys
 import time
 from pathlib import Path
 
-from train_world.recon.presets import PRESETS, Preset, TrainConfig, get_preset
+from train_world.recon.cli import add_mip_argument
+from train_world.recon.presets import PRESETS, Preset, TrainConfig, get_preset, mip_overrides
 
 __all__ = ["has_two_training_states", "main", "scaled_preset", "wants_two_state"]
 
@@ -97,6 +98,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--downscale", type=int, default=1)
     p.add_argument("--holdout-every", type=int, default=8, help="hold out every n-th view of each state")
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
+    add_mip_argument(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--joint-from", type=float, default=0.5, help="reconstruction-only fraction (default 0.5)")
     p.add_argument("--lambda-align", type=float, default=1.0)
@@ -129,7 +131,8 @@ def _parser() -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace):
     from .trainer import DualConfig
 
-    preset = scaled_preset(args.preset, args.iterations, args.max_gaussians)
+    preset = dataclasses.replace(scaled_preset(args.preset, args.iterations, args.max_gaussians),
+                                 **mip_overrides(args.mip))
     base = TrainConfig(
         preset=preset,
         seed=args.seed,

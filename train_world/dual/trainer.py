@@ -307,6 +307,9 @@ class DualTrainer:
         self.step += 1
         t1.strategy.after_backward(self.step, t1.field, t1.optimizers, meta1, t1.generator)
         t2.strategy.after_backward(self.step, t2.field, t2.optimizers, meta2, t2.generator)
+        if p.filter3d_scale > 0 and self.step % p.densify_every == 0:
+            t1.field.update_filter3d()
+            t2.field.update_filter3d()
         if cfg.use_prune and joint and (self.step - self.joint_start) % cfg.prune_every == 0:
             self.co_prune()
         t1.step = t2.step = self.step
@@ -352,6 +355,8 @@ class DualTrainer:
                 if not bool(torch.isfinite(v).all()):
                     raise TrainingDiverged(f"{tag}.{k} became non-finite at step {self.step}")
                 tensors[f"{tag}/field/{k}"] = v.data
+            if t.field.filter3d is not None:
+                tensors[f"{tag}/filter3d"] = t.field.filter3d
             for name, opt in t.optimizers.items():
                 tensors.update(optimizer_to_tensors(f"{tag}/adam/{name}", opt))
             tensors.update({f"{tag}/strategy/{k}": v for k, v in t.strategy.state_tensors().items()})
@@ -403,6 +408,9 @@ class DualTrainer:
             ("g2", self.t2, meta["numpy_rng_fields"][1]),
         ):
             t.field = SegmentedField(*(tensors[f"{tag}/field/{k}"] for k in PARAM_NAMES))
+            t._configure_filters()
+            if f"{tag}/filter3d" in tensors:
+                t.field.filter3d = tensors[f"{tag}/filter3d"].clone()
             t.optimizers = make_optimizers(t.field, self.preset.lrs, t.extent)
             for name, opt in t.optimizers.items():
                 optimizer_from_tensors(f"{tag}/adam/{name}", opt, tensors)

@@ -38,7 +38,7 @@ __all__ = ["choose_object_sources", "merged_field", "merged_world"]
 def _rows(
     field: SegmentedField, mask: torch.Tensor, T: torch.Tensor | None = None
 ) -> dict[str, torch.Tensor]:
-    out = {k: v.detach()[mask] for k, v in field.params().items()}
+    out = {k: v[mask] for k, v in field.baked_params().items()}
     if T is not None and out["means"].shape[0]:
         out["means"], out["quats"] = rigid_transform_gaussians(out["means"], out["quats"], T)
         if out["shN"].shape[1]:  # the view-dependent colour turns with the object
@@ -47,8 +47,10 @@ def _rows(
     return out
 
 
-def _concat(parts: list[dict[str, torch.Tensor]]) -> SegmentedField:
-    return SegmentedField(*(torch.cat([p[k] for p in parts], dim=0) for k in PARAM_NAMES))
+def _concat(parts: list[dict[str, torch.Tensor]], rasterize_mode: str) -> SegmentedField:
+    f = SegmentedField(*(torch.cat([p[k] for p in parts], dim=0) for k in PARAM_NAMES))
+    f.configure_filters(rasterize_mode)  # the parts' 3D filter is baked in (SegmentedField.baked_params)
+    return f
 
 
 @torch.no_grad()
@@ -89,7 +91,7 @@ def merged_field(
         "background_dropped_1": int(bg1.sum() - m1.sum()),
         "object_sources": [int(s) for s in sources],
     }
-    return _concat(parts), torch.cat(classes), info
+    return _concat(parts, f1.rasterize_mode), torch.cat(classes), info
 
 
 @torch.no_grad()
@@ -159,6 +161,7 @@ def merged_world(trainer: DualTrainer, extra_metadata: dict[str, Any] | None = N
         "iterations": trainer.step,
         "scene_extent": trainer.t1.extent,
         "num_gaussians": field.num,
+        "rasterize_mode": field.rasterize_mode,
         "dual": {
             **trainer.config.to_dict(),
             "ablation": trainer.config.ablation,

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from .presets import PRESETS, TrainConfig, get_preset
+from .presets import PRESETS, TrainConfig, get_preset, mip_overrides
 
 __all__ = ["main"]
 
@@ -64,11 +64,22 @@ def _parser() -> argparse.ArgumentParser:
         metavar=("R", "G", "B"),
         help="background colour (default: white for NeRF-Blender, black otherwise)",
     )
+    add_mip_argument(p)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--checkpoint", type=Path, help="checkpoint file (default: WORLD.ckpt)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def add_mip_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--mip",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="Mip-Splatting filters: the antialiased rasterizer (2D Mip filter) and the 3D smoothing filter, "
+        "for worlds that render correctly when objects move nearer or farther (default: the preset's)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
 
     ckpt = args.checkpoint or args.out.with_name(args.out.name + ".ckpt")
     try:
-        preset = get_preset(args.preset, **({"iterations": args.iterations} if args.iterations else {}))
+        preset = get_preset(args.preset, **({"iterations": args.iterations} if args.iterations else {}),
+                            **mip_overrides(args.mip))
         config = TrainConfig(
             preset=preset,
             seed=args.seed,

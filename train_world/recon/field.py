@@ -5,6 +5,13 @@ Raw parameters (``nn.Parameter``): ``means [N,3]``, ``quats [N,4]`` (w, x, y, z;
 Activation: scale = exp, opacity = sigmoid, rotation = normalised quaternion, rgb = SH(view dir) + 0.5
 clamped at 0 (3DGS). RGB and the F identity channels are rendered in one rasterizer call.
 
+Mip-Splatting (optional, ``configure_filters``): the renderer's antialiased mode (2D Mip filter) and a 3D
+smoothing filter, a per-Gaussian isotropic variance ``filter3d [N]`` added to the covariance, sized to the
+finest sampling interval (depth / focal) at which any training camera sees the Gaussian, times
+``filter3d_scale`` (0.2 in the paper). The filtered scale is ``sqrt(scale^2 + f)`` and the opacity is
+multiplied by ``sqrt(prod scale^2 / prod(scale^2 + f))``; both are baked into ``to_gaussian_set``, so the
+runtime needs only the 2D mode. Densification sees the unfiltered parameters (as Mip-Splatting).
+
 ``render(..., transform=...)`` moves Gaussians before rendering (the hook DSG-World's state transfer needs):
 ``transform`` is a ``[4,4]`` or per-Gaussian ``[N,4,4]`` rigid world transform, or a callable
 ``(means, quats) -> (means, quats)``.
@@ -24,7 +31,8 @@ from dsg_gym.gaussians import GaussianSet
 from dsg_gym.geometry import quat_multiply, rotmat_to_quat
 from dsg_gym.splat import rasterize, spherical_harmonics
 
-__all__ = ["PARAM_NAMES", "Classifier", "RenderOutput", "SegmentedField", "rigid_transform_gaussians"]
+__all__ = ["PARAM_NAMES", "Classifier", "RenderOutput", "SegmentedField", "filter3d_variance",
+           "rigid_transform_gaussians"]
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "features")
 
@@ -52,6 +60,32 @@ def rigid_transform_gaussians(
         new_means = torch.einsum("nij,nj->ni", R, means) + t
         qR = rotmat_to_quat(R)
     return new_means, quat_multiply(qR, quats)
+
+
+@torch.no_grad()
+def filter3d_variance(means: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+                      scale: float = 0.2, near: float = 0.2, margin: float = 0.15) -> torch.Tensor:
+    """Mip-Splatting's 3D filter variance per Gaussian ``[N]``: ``scale * (depth / focal)^2`` for the camera
+    that samples the centre most finely, among the cameras that see it (depth > ``near``, inside the image
+    widened by ``margin``); Gaussians no camera sees get the largest value. means ``[N,3]``, viewmats
+    ``[V,4,4]``, Ks ``[V,3,3]``."""
+    best = torch.full((means.shape[0],), float("inf"), dtype=torch.float64)
+    m = means.double()
+    for V, K in zip(viewmats.double(), Ks.double()):
+        p = m @ V[:3, :3].T + V[:3, 3]
+        z = p[:, 2]
+        f = float(torch.minimum(K[0, 0], K[1, 1]))
+        zs = z.clamp_min(1e-9)
+        u = p[:, 0] / zs * K[0, 0] + K[0, 2]
+        v = p[:, 1] / zs * K[1, 1] + K[1, 2]
+        seen = (z > near) & (u >= -margin * width) & (u <= (1 + margin) * width) & (v >= -margin * height) & (
+            v <= (1 + margin) * height)
+        best = torch.where(seen, torch.minimum(best, z / f), best)
+    seen = torch.isfinite(best)
+    if not bool(seen.any()):
+        return torch.zeros(means.shape[0], dtype=means.dtype)
+    best = torch.where(seen, best, best[seen].max())
+    return (scale * best * best).to(means.dtype)
 
 
 class Classifier(nn.Linear):
@@ -89,6 +123,59 @@ class SegmentedField(nn.Module):
             raise ValueError(f"SegmentedField.shN: shape {tuple(shN.shape)} is not [N, (d+1)^2 - 1, 3]")
         for name, v in vals.items():
             setattr(self, name, nn.Parameter(v.detach().to(torch.float32).contiguous().clone()))
+        self.rasterize_mode = "classic"
+        self.filter3d_scale = 0.0
+        self.filter3d: torch.Tensor | None = None  # [N] variance (world units^2), not trained
+        self._filter_cameras: tuple | None = None
+
+    # ------------------------------------------------------------------ Mip-Splatting filters
+    def configure_filters(self, rasterize_mode: str = "classic", filter3d_scale: float = 0.0,
+                          cameras: tuple | None = None) -> None:
+        """Select the 2D mode and the 3D filter; ``cameras``: ``(viewmats [V,4,4], Ks [V,3,3], width, height)``
+        the training views that set each Gaussian's sampling rate (needed when ``filter3d_scale > 0``)."""
+        if rasterize_mode not in ("classic", "antialiased"):
+            raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+        if not filter3d_scale >= 0.0:
+            raise ValueError(f"filter3d_scale must be >= 0, got {filter3d_scale}")
+        if filter3d_scale > 0 and cameras is None:
+            raise ValueError("the 3D filter needs the training cameras")
+        self.rasterize_mode = rasterize_mode
+        self.filter3d_scale = float(filter3d_scale)
+        self._filter_cameras = cameras
+        self.filter3d = None
+        if self.filter3d_scale > 0:
+            self.update_filter3d()
+
+    @torch.no_grad()
+    def update_filter3d(self) -> None:
+        """Recompute ``filter3d`` from the current means (call after densification, as Mip-Splatting does)."""
+        if self.filter3d_scale <= 0 or self._filter_cameras is None:
+            self.filter3d = None
+            return
+        viewmats, Ks, width, height = self._filter_cameras
+        self.filter3d = filter3d_variance(self.means.detach(), viewmats, Ks, width, height, self.filter3d_scale)
+
+    @torch.no_grad()
+    def baked_params(self) -> dict[str, torch.Tensor]:
+        """Detached raw parameters with the 3D filter folded into ``log_scales`` and ``opacity_logits`` (a field
+        made of them renders the same without the 3D filter, in the same ``rasterize_mode``)."""
+        out = {k: v.detach().clone() for k, v in self.params().items()}
+        if self.filter3d_scale > 0:
+            scales, opac = self.scales_opacities()
+            out["log_scales"] = torch.log(scales)
+            out["opacity_logits"] = torch.logit(opac.clamp(1e-7, 1 - 1e-7))
+        return out
+
+    def scales_opacities(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The scales ``[N,3]`` and opacities ``[N]`` that are rendered: after the 3D filter when it is on."""
+        scales, opac = self.scales(), self.opacities()
+        if self.filter3d_scale <= 0:
+            return scales, opac
+        if self.filter3d is None or self.filter3d.shape[0] != self.num:  # rows changed since the last update
+            self.update_filter3d()
+        s2 = scales * scales
+        s2f = s2 + self.filter3d[:, None]
+        return torch.sqrt(s2f), opac * torch.sqrt(torch.prod(s2 / s2f, dim=-1))
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -173,7 +260,7 @@ class SegmentedField(nn.Module):
         selecting the Gaussians drawn.
         """
         means, quats = self.means, self.quats
-        scales, opac = self.scales(), self.opacities()
+        scales, opac = self.scales_opacities()
         sh, feats = self.sh(), self.features
         if mask is not None:
             means, quats, scales, opac, sh, feats = (t[mask] for t in (means, quats, scales, opac, sh, feats))
@@ -201,7 +288,8 @@ class SegmentedField(nn.Module):
             if with_features:
                 bg = torch.cat([bg, bg.new_zeros(feats.shape[1])])
         out, alpha, meta = rasterize(
-            means, quats, scales, opac, cols, viewmats, Ks, int(width), int(height), backgrounds=bg
+            means, quats, scales, opac, cols, viewmats, Ks, int(width), int(height), backgrounds=bg,
+            rasterize_mode=self.rasterize_mode,
         )
         return RenderOutput(
             rgb=out[..., :3], features=out[..., 3:] if with_features else None, alpha=alpha, meta=meta
@@ -210,19 +298,22 @@ class SegmentedField(nn.Module):
     # ------------------------------------------------------------------ export
     @torch.no_grad()
     def to_gaussian_set(self, labels: np.ndarray | None = None) -> GaussianSet:
-        """Activated numpy copy (``GaussianSet``), with the raw logits/log-scales kept as encodings."""
+        """Activated numpy copy (``GaussianSet``), with the raw logits/log-scales kept as encodings; with the 3D
+        filter on, its effect is baked into the scales and opacities (and the raw encodings are dropped)."""
         q = self.quats.detach()
         q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        scales, opac = self.scales_opacities()
+        raw = self.filter3d_scale <= 0
         return GaussianSet(
             means=self.means.detach().numpy(),
             quats=q.numpy(),
-            scales=self.scales().detach().numpy(),
-            opacities=self.opacities().detach().numpy(),
+            scales=scales.detach().numpy(),
+            opacities=opac.detach().numpy(),
             sh=self.sh().detach().numpy(),
             features=self.features.detach().numpy(),
             labels=labels,
-            opacity_logits=self.opacity_logits.detach().numpy(),
-            log_scales=self.log_scales.detach().numpy(),
+            opacity_logits=self.opacity_logits.detach().numpy() if raw else None,
+            log_scales=self.log_scales.detach().numpy() if raw else None,
         )
 
     @torch.no_grad()

@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset"]
+__all__ = ["MIP_FILTER3D_SCALE", "PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset", "mip_overrides"]
 
 
 @dataclass(frozen=True)
@@ -59,6 +59,10 @@ class Preset:
     reg3d_k: int = 5
     reg3d_samples: int = 1000
     checkpoint_every: int = 500
+    # Mip-Splatting: the renderer's mode ("antialiased" = 2D Mip filter) and the 3D filter's variance factor
+    # (0: off; the paper's 0.2)
+    rasterize_mode: str = "classic"
+    filter3d_scale: float = 0.0
     lrs: LearningRates = field(default_factory=LearningRates)
 
     def __post_init__(self) -> None:
@@ -66,6 +70,11 @@ class Preset:
             raise ValueError(f"preset {self.name!r}: iterations must be >= 1, got {self.iterations}")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"preset {self.name!r}: sh_degree must be 0..3, got {self.sh_degree}")
+        if self.rasterize_mode not in ("classic", "antialiased"):
+            raise ValueError(f"preset {self.name!r}: rasterize_mode must be 'classic' or 'antialiased', "
+                             f"got {self.rasterize_mode!r}")
+        if not self.filter3d_scale >= 0:
+            raise ValueError(f"preset {self.name!r}: filter3d_scale must be >= 0, got {self.filter3d_scale}")
         for name in ("densify_every", "sh_degree_every", "checkpoint_every", "reg3d_every", "reset_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"preset {self.name!r}: {name} must be >= 1")
@@ -126,6 +135,18 @@ PRESETS: dict[str, Preset] = {
         checkpoint_every=1000,
     ),
 }
+
+
+MIP_FILTER3D_SCALE = 0.2  # Mip-Splatting's 3D filter variance factor
+
+
+def mip_overrides(mip: bool | None) -> dict[str, Any]:
+    """Preset fields for ``--mip`` (Mip-Splatting: antialiased rasterizer + 3D filter), ``--no-mip`` (3DGS's
+    classic rasterizer, no 3D filter) or neither (``None``: the preset's own choice)."""
+    if mip is None:
+        return {}
+    return {"rasterize_mode": "antialiased", "filter3d_scale": MIP_FILTER3D_SCALE} if mip else {
+        "rasterize_mode": "classic", "filter3d_scale": 0.0}
 
 
 def get_preset(name: str, **overrides: Any) -> Preset:

@@ -97,6 +97,7 @@ class Trainer:
         self.background = torch.tensor(data.background, dtype=torch.float32)
         self.has_masks = data.classes is not None and data.num_classes > 1
         self.field, self.classifier = self._initial_field()
+        self._configure_filters()
         self.optimizers = make_optimizers(self.field, self.preset.lrs, self.extent)
         self.cls_optimizer = torch.optim.Adam(self.classifier.parameters(), lr=self.preset.lrs.classifier)
         self.strategy = DensifyStrategy(StrategyConfig.from_preset(self.preset, self.extent), self.field.num)
@@ -149,6 +150,10 @@ class Trainer:
             classifier.weight.copy_(5.0 * codes)
             classifier.bias.zero_()
         return field, classifier
+
+    def _configure_filters(self) -> None:
+        d, p = self.data, self.preset
+        self.field.configure_filters(p.rasterize_mode, p.filter3d_scale, (d.viewmats, d.Ks, d.width, d.height))
 
     # ------------------------------------------------------------------ one step
     def _next_view(self) -> int:
@@ -214,6 +219,8 @@ class Trainer:
             self.cls_optimizer.step()
         self.step += 1
         self.strategy.after_backward(self.step, self.field, self.optimizers, out.meta, self.generator)
+        if p.filter3d_scale > 0 and self.step % p.densify_every == 0:
+            self.field.update_filter3d()
         stats["n"] = self.field.num
         return stats
 
@@ -258,6 +265,8 @@ class Trainer:
                     f"the last good checkpoint (step {self.last_checkpoint_step}) is kept"
                 )
         tensors = {f"field/{k}": v.data for k, v in self.field.params().items()}
+        if self.field.filter3d is not None:
+            tensors["filter3d"] = self.field.filter3d
         for name, opt in self.optimizers.items():
             tensors.update(optimizer_to_tensors(f"adam/{name}", opt))
         tensors.update({f"classifier/{k}": v.data for k, v in self.classifier.named_parameters()})
@@ -290,6 +299,9 @@ class Trainer:
                 f"(checkpoint vs now: {json.dumps(diff)[:400]}); use the same options to resume"
             )
         self.field = SegmentedField(*(tensors[f"field/{k}"] for k in PARAM_NAMES))
+        self._configure_filters()
+        if "filter3d" in tensors:
+            self.field.filter3d = tensors["filter3d"].clone()
         self.optimizers = make_optimizers(self.field, self.preset.lrs, self.extent)
         for name, opt in self.optimizers.items():
             optimizer_from_tensors(f"adam/{name}", opt, tensors)
@@ -328,6 +340,7 @@ class Trainer:
             "iterations": self.step,
             "scene_extent": self.extent,
             "num_gaussians": self.field.num,
+            "rasterize_mode": self.preset.rasterize_mode,
             **(extra_metadata or {}),
         }
         if "name" in d.source:

@@ -274,7 +274,7 @@ def render_error(world: WorldModel, test: TestStates, point: Point) -> dict:
     Ks[:, 1] *= s / test.height
     bgc = tuple(float(c) for c in world.metadata.get("background", (0.0, 0.0, 0.0)))
     r = SceneRenderer(world.background, list(world.objects), test.viewmats, Ks, s, s, background_color=bgc,
-                      rasterize_mode=world.rasterize_mode, **point.render_settings.kwargs())
+                      **world.splat_options, **point.render_settings.kwargs())
     k = world.num_objects
     psnrs, ssims, ious = [], [], []
     for state in sorted(test.poses):

@@ -76,21 +76,22 @@ class _Projected:
 
 
 def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-             alpha_min: float = R.ALPHA_MIN) -> _Projected:
+             alpha_min: float = R.ALPHA_MIN, eps2d: float = P.BLUR) -> _Projected:
     V, n = viewmats.shape[0], means.shape[0]
     out = _Projected(np.empty((V, n, 2), np.float32), np.empty((V, n, 3), np.float32),
                      np.empty((V, n), np.float32), np.empty((V, n, 2), np.int32), np.empty((V, n, 4), np.int32))
     kernel = P.project_forward if V * n > 20_000 else P.project_forward_serial
     kernel(means, quats, scales, opacities[None], viewmats, Ks, float(width), float(height),
-           float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects, float(alpha_min))
+           float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects, float(alpha_min),
+           float(eps2d))
     return out
 
 
-def _antialias(conics: np.ndarray, opacities: np.ndarray) -> np.ndarray:
+def _antialias(conics: np.ndarray, opacities: np.ndarray, eps2d: float) -> np.ndarray:
     """Per-camera opacities ``[V, n]`` after the Mip filter (one kernel for every renderer)."""
     out = np.empty(conics.shape[:2], np.float32)
     kernel = P.antialias_opacities if out.size > 20_000 else P.antialias_opacities_serial
-    kernel(conics, opacities, out)
+    kernel(conics, opacities, out, float(eps2d))
     return out
 
 
@@ -132,8 +133,9 @@ class SceneRenderer:
         t_min: a pixel stops compositing once its transmittance would drop below this (default 1e-4).
         sh_degree: highest SH degree evaluated (``None``: all the Gaussians carry; lower is cheaper
             and drops view-dependent detail).
-        rasterize_mode: "classic" or "antialiased" (the Mip filter of :func:`dsg_gym.splat.rasterize`);
-            a world must be rendered in the mode it was trained with (``World.rasterize_mode``).
+        rasterize_mode: "classic" or "antialiased" (the Mip filter of :func:`dsg_gym.splat.rasterize`),
+            eps2d: the 2D low-pass in px^2; a world must be rendered with the options it was trained with
+            (``World.splat_options``).
 
     Raising ``alpha_min``/``t_min`` or lowering ``sh_degree`` trades accuracy for speed
     (``benchmarks/pareto.py`` measures the trade).
@@ -142,10 +144,12 @@ class SceneRenderer:
     def __init__(self, background: GaussianSet, objects: Sequence[GaussianSet], viewmats, Ks, width: int,
                  height: int, background_color=(0.0, 0.0, 0.0), near_plane: float = 0.01,
                  far_plane: float = 1e10, alpha_min: float = R.ALPHA_MIN, t_min: float = R.T_MIN,
-                 sh_degree: int | None = None, rasterize_mode: str = "classic"):
+                 sh_degree: int | None = None, rasterize_mode: str = "classic", eps2d: float = P.BLUR):
         if rasterize_mode not in RASTERIZE_MODES:
             raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
-        self.rasterize_mode = rasterize_mode
+        if not (isinstance(eps2d, (int, float)) and np.isfinite(eps2d) and 0 < eps2d <= 10):
+            raise ValueError(f"eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
+        self.rasterize_mode, self.eps2d = rasterize_mode, float(eps2d)
         self._consts = R.make_consts(np.float32, alpha_min, t_min)
         self.alpha_min, self.t_min = float(alpha_min), float(t_min)
         self.background = background
@@ -200,11 +204,11 @@ class SceneRenderer:
         self._bg = _project(np.ascontiguousarray(bg.means, np.float32), np.ascontiguousarray(bg.quats, np.float32),
                             np.ascontiguousarray(bg.scales, np.float32), np.ascontiguousarray(bg.opacities, np.float32),
                             self.viewmats, self.Ks, self.width, self.height, self.near, self.far,
-                            self.alpha_min)
+                            self.alpha_min, self.eps2d)
         self._bg_bins = _bins(self._bg, self.tiles_x, self.tiles_y)
         self._bg_opac = np.ascontiguousarray(bg.opacities, np.float32)[None]  # [1 or V, n]
         if self.rasterize_mode == "antialiased":
-            self._bg_opac = _antialias(self._bg.conics, self._bg_opac)
+            self._bg_opac = _antialias(self._bg.conics, self._bg_opac, self.eps2d)
         self._bg_rgb = np.empty((self.V, bg.num, 3), np.float32)
         sh = np.zeros((bg.num, (self._sh_degree + 1) ** 2, 3), np.float32)
         m = min(sh.shape[1], bg.sh.shape[1])
@@ -245,11 +249,12 @@ class SceneRenderer:
             I.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
                               st["quats"][s:e])
             pr = _project(st["means"][s:e], st["quats"][s:e], self._obj_scales[s:e], self._obj_opac[s:e],
-                          self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min)
+                          self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min,
+                          self.eps2d)
             for f in ("means2d", "conics", "depths", "radii", "rects"):
                 getattr(st["proj"], f)[:, s:e] = getattr(pr, f)
             if self.rasterize_mode == "antialiased":
-                st["opac"][:, s:e] = _antialias(pr.conics, self._obj_opac[None, s:e])
+                st["opac"][:, s:e] = _antialias(pr.conics, self._obj_opac[None, s:e], self.eps2d)
             rgb = self._rgb_scratch[:e - s]
             for v in range(self.V):
                 if layout[1] >= 0:

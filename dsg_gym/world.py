@@ -51,6 +51,7 @@ __all__ = [
     "WorldObject",
     "load_world",
     "parse_world_bytes",
+    "splat_options",
     "transform_gaussians",
 ]
 
@@ -111,6 +112,12 @@ class World:
     def rasterize_mode(self) -> str:
         """The splat mode the world was trained in and must be rendered in ("classic" or "antialiased")."""
         return str(self.metadata.get("rasterize_mode", "classic"))
+
+    @property
+    def splat_options(self) -> dict[str, Any]:
+        """Keyword arguments every renderer of this world needs (``rasterize`` / ``SceneRenderer``): the
+        ``rasterize_mode`` and 2D low-pass ``eps2d`` (px^2) it was trained with (defaults: 3DGS's)."""
+        return splat_options(self.metadata)
 
     @property
     def object_ids(self) -> tuple[int, ...]:
@@ -175,6 +182,18 @@ def transform_gaussians(g: GaussianSet, T: np.ndarray, label: int | None = None)
 
 # ----------------------------------------------------------------------------------- reading
 _DTYPES = {"F32": np.float32, "F64": np.float64, "I32": np.int32, "I64": np.int64, "U8": np.uint8}
+
+
+def splat_options(metadata: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"rasterize_mode", "eps2d"}`` from a world's metadata (absent: "classic", 0.3); WorldFormatError when
+    they are not valid."""
+    mode = metadata.get("rasterize_mode", "classic")
+    if mode not in RASTERIZE_MODES:
+        raise WorldFormatError(f"unknown rasterize_mode {mode!r} in the world metadata (known: {RASTERIZE_MODES})")
+    eps2d = metadata.get("eps2d", 0.3)
+    if isinstance(eps2d, bool) or not isinstance(eps2d, (int, float)) or not 0 < eps2d <= 10:
+        raise WorldFormatError(f"world metadata eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
+    return {"rasterize_mode": str(mode), "eps2d": float(eps2d)}
 
 
 def _fail(src: str, msg: str) -> WorldFormatError:
@@ -250,9 +269,7 @@ def _build(arrays: dict[str, np.ndarray], doc: dict, version: int) -> World:
         )
         for s, c in doc["cameras"].items()
     }
-    mode = doc.get("metadata", {}).get("rasterize_mode", "classic")
-    if mode not in RASTERIZE_MODES:
-        raise WorldFormatError(f"unknown rasterize_mode {mode!r} in the world metadata (known: {RASTERIZE_MODES})")
+    splat_options(doc.get("metadata", {}))  # validates
     return World(
         background=_gaussian_set(arrays, "gaussians/background"),
         objects=MappingProxyType(objects),

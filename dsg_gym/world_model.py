@@ -153,6 +153,13 @@ class WorldModel:
         return str(self.metadata.get("rasterize_mode", "classic"))
 
     @property
+    def splat_options(self) -> dict[str, Any]:
+        """Renderer keyword arguments the world was trained with (:attr:`dsg_gym.world.World.splat_options`)."""
+        from .world import splat_options
+
+        return splat_options(self.metadata)
+
+    @property
     def num_gaussians(self) -> int:
         return self.background.num + sum(o.num for o in self.objects)
 

@@ -82,12 +82,13 @@ def test_mip_training_writes_an_antialiased_world_that_renders_as_trained(tiny, 
     assert t.field.filter3d is not None and t.field.filter3d.shape == (t.field.num,)
     path = t.write_world(tmp_path / "mip.dsgw")
     w = load_world(path)
-    assert w.rasterize_mode == "antialiased" and w.metadata["train_config"]["preset"]["filter3d_scale"] == 0.2
+    assert w.splat_options == {"rasterize_mode": "antialiased", "eps2d": 0.1}
+    assert w.metadata["train_config"]["preset"]["filter3d_scale"] == 0.2
     with torch.no_grad():
         out = t.field.render(data.viewmats[:2], data.Ks[:2], data.width, data.height, background=t.background,
                              with_features=False)
     rgb, _ = render_gaussians(w.gaussians(), data.viewmats[:2].numpy(), data.Ks[:2].numpy(), data.width,
-                              data.height, tuple(data.background), w.rasterize_mode)
+                              data.height, tuple(data.background), w.splat_options)
     assert np.abs(out.rgb.numpy() - rgb).max() < 1e-5
     classic, _ = render_gaussians(w.gaussians(), data.viewmats[:2].numpy(), data.Ks[:2].numpy(), data.width,
                                   data.height, tuple(data.background))
@@ -96,11 +97,12 @@ def test_mip_training_writes_an_antialiased_world_that_renders_as_trained(tiny, 
     import gymnasium as gym
 
     wm = WorldModel.from_world(w)
-    assert wm.rasterize_mode == "antialiased"
+    assert wm.rasterize_mode == "antialiased" and wm.splat_options == w.splat_options
     env = gym.make("DSGWorld-v0", world=str(path), width=32, height=32)
     try:
         env.reset(seed=0)
-        assert env.unwrapped.renderer.rasterize_mode == "antialiased"
+        r = env.unwrapped.renderer
+        assert r.rasterize_mode == "antialiased" and r.eps2d == 0.1
     finally:
         env.close()
 
@@ -108,11 +110,12 @@ def test_mip_training_writes_an_antialiased_world_that_renders_as_trained(tiny, 
 def test_unknown_rasterize_mode_in_a_world_file_is_refused(tiny, tmp_path):
     cfg = _config(iterations=5)
     t = Trainer(load_training_data(tiny, cfg), cfg)
-    w = t.world({"rasterize_mode": "mip"})
     from dsg_gym.world import WorldFormatError, parse_world_bytes
 
-    with pytest.raises(WorldFormatError, match="rasterize_mode"):
-        parse_world_bytes(encode_world(w))
+    for bad, what in (({"rasterize_mode": "mip"}, "rasterize_mode"), ({"eps2d": -1.0}, "eps2d"),
+                      ({"eps2d": "0.1"}, "eps2d")):
+        with pytest.raises(WorldFormatError, match=what):
+            parse_world_bytes(encode_world(t.world(bad)))
 
 
 def test_resume_with_the_3d_filter_gives_the_same_world(tiny, tmp_path):

@@ -41,7 +41,7 @@ def setup():
     return bg, objs, vm, K, W, H
 
 
-def _compose_and_rasterize(sr, bg, vm, K, W, H, mode="classic"):
+def _compose_and_rasterize(sr, bg, vm, K, W, H, mode="classic", eps2d=0.3):
     st = sr._state
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
     means = np.concatenate([bg.means, st["means"]])
@@ -50,14 +50,14 @@ def _compose_and_rasterize(sr, bg, vm, K, W, H, mode="classic"):
     op = np.concatenate([bg.opacities, sr._obj_opac])
     cols = np.concatenate([st["bg_colors"], st["colors"]], axis=1)
     out, alpha, _ = rasterize(t(means), t(quats), t(scales), t(op), t(cols), t(vm.astype(np.float32)),
-                              t(K.astype(np.float32)), W, H, rasterize_mode=mode)
+                              t(K.astype(np.float32)), W, H, rasterize_mode=mode, eps2d=eps2d)
     return out.numpy(), alpha[..., 0].numpy()
 
 
-@pytest.mark.parametrize("mode", ["classic", "antialiased"])
-def test_incremental_equals_full_and_rasterize(setup, mode):
+@pytest.mark.parametrize("mode,eps2d", [("classic", 0.3), ("antialiased", 0.3), ("antialiased", 0.1)])
+def test_incremental_equals_full_and_rasterize(setup, mode, eps2d):
     bg, objs, vm, K, W, H = setup
-    sr = SceneRenderer(bg, objs, vm, K, W, H, background_color=(0.1, 0.2, 0.3), rasterize_mode=mode)
+    sr = SceneRenderer(bg, objs, vm, K, W, H, background_color=(0.1, 0.2, 0.3), rasterize_mode=mode, eps2d=eps2d)
     rng = np.random.default_rng(1)
     poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
     sr.render(poses, depth=True)
@@ -75,7 +75,7 @@ def test_incremental_equals_full_and_rasterize(setup, mode):
             assert np.array_equal(getattr(inc, name), getattr(full, name)), name
     total = 2 * ((W + 15) // 16) * ((H + 15) // 16)
     assert 0 < min(dirty) and max(dirty) < total  # only part of the image was recomposited
-    out_r, alpha_r = _compose_and_rasterize(sr, bg, vm, K, W, H, mode)
+    out_r, alpha_r = _compose_and_rasterize(sr, bg, vm, K, W, H, mode, eps2d)
     assert np.array_equal(out_r, sr.buffers()[0])
     assert np.array_equal(alpha_r, 1.0 - sr.buffers()[1])
     if mode == "antialiased":  # the filter really acted: not the classic image
@@ -87,6 +87,8 @@ def test_unknown_rasterize_mode_rejected(setup):
     bg, objs, vm, K, W, H = setup
     with pytest.raises(ValueError, match="rasterize_mode"):
         SceneRenderer(bg, objs, vm, K, W, H, rasterize_mode="mip")
+    with pytest.raises(ValueError, match="eps2d"):
+        SceneRenderer(bg, objs, vm, K, W, H, eps2d=0.0)
 
 
 def test_unmoved_render_touches_nothing_and_outputs(setup):

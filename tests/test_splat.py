@@ -92,8 +92,10 @@ def test_torch_tiling_equals_dense_oracle():
     assert (full[0] - dense[0]).abs().max() <= 1e-6
 
 
-def test_antialiased_numba_matches_torch_reference():
+@pytest.mark.parametrize("eps2d", [0.3, 0.1])
+def test_antialiased_numba_matches_torch_reference(eps2d):
     scene = random_scene(1500, width=48, height=40, seed=11, cameras=2, scale_range=(0.002, 0.05))
+    scene["eps2d"] = eps2d
     a = _render_with_grads(scene, "numba", "RGB+D", rasterize_mode="antialiased")
     b = _render_with_grads(scene, "torch", "RGB+D", rasterize_mode="antialiased")
     c = _render_with_grads(scene, "numba", "RGB+D")
@@ -126,10 +128,28 @@ def test_antialiasing_factor_is_the_determinant_ratio():
     assert float(aa) < 0.1 * float(classic)
 
 
-def test_rasterize_mode_is_validated():
+def test_rasterize_mode_and_eps2d_are_validated():
     s = random_scene(5)
     with pytest.raises(ValueError, match="rasterize_mode"):
         rasterize(**s, rasterize_mode="mip")
+    for bad in (0.0, -0.1, float("nan"), "0.3"):
+        with pytest.raises(ValueError, match="eps2d"):
+            rasterize(**s, eps2d=bad)
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_eps2d_is_the_low_pass_variance(backend):
+    """A Gaussian's projected variance is (f s / z)^2 + eps2d: the rendered alpha profile follows it."""
+    W = H = 33
+    f = float(intrinsics(W, H)[0, 0])
+    z, s, o = 3.0, 0.02, 0.8
+    for eps in (0.1, 0.3, 1.0):
+        K = intrinsics(W, H)[None]
+        _, alpha, _ = rasterize(torch.tensor([[0.0, 0.0, z]]), torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+                                torch.tensor([[s, s, s]]), torch.tensor([o]), torch.ones(1, 3), torch.eye(4)[None],
+                                K, W, H, backend=backend, eps2d=eps)
+        var = (f * s / z) ** 2 + eps
+        assert float(alpha[0, 16, 17, 0]) == pytest.approx(o * math.exp(-0.5 / var), rel=1e-5)
 
 
 @pytest.mark.parametrize("backend", ["numba", "torch"])

@@ -44,7 +44,7 @@ class SelfCheck:
         self.reference_psnr = float(reference_psnr)
         self.m0 = 10.0 ** (-self.reference_psnr / 10.0)
         self.max_drop = cfg.max_psnr_drop
-        self.mode = world.rasterize_mode
+        self.splat = world.splat_options
         self.ref = self._render(world.background, [world.objects[i].gaussians for i in world.object_ids])
 
     def _render(self, bg: GaussianSet, objs: list[GaussianSet]) -> np.ndarray:
@@ -53,7 +53,7 @@ class SelfCheck:
         c = self.cams
         r = SceneRenderer(
             bg, objs, c.viewmats[self.idx], c.Ks[self.idx], c.width, c.height, background_color=self.bg,
-            rasterize_mode=self.mode,
+            **self.splat,
         )
         out = np.empty((len(self.poses), len(self.idx), c.height, c.width, 3), np.float32)
         for s, poses in enumerate(self.poses):

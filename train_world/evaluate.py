@@ -63,10 +63,10 @@ _PALETTE = np.array(
 @torch.no_grad()
 def render_gaussians(
     g: GaussianSet, viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, background=(0.0, 0.0, 0.0),
-    rasterize_mode: str = "classic",
+    splat_options: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """RGB ``[V,H,W,3]`` and identity features ``[V,H,W,F]`` of ``g`` (one rasterizer call per view), in the
-    world's ``rasterize_mode``."""
+    """RGB ``[V,H,W,3]`` and identity features ``[V,H,W,F]`` of ``g`` (one rasterizer call per view), with the
+    world's ``splat_options`` (``World.splat_options``: rasterize mode and 2D low-pass)."""
     t = {
         k: torch.from_numpy(np.ascontiguousarray(getattr(g, k)))
         for k in ("means", "quats", "scales", "opacities", "sh", "features")
@@ -91,7 +91,7 @@ def render_gaussians(
             int(width),
             int(height),
             backgrounds=bg,
-            rasterize_mode=rasterize_mode,
+            **(splat_options or {}),
         )
         rgbs.append(out[0, ..., :3].numpy())
         feats.append(out[0, ..., 3:].numpy())
@@ -194,7 +194,7 @@ def evaluate(
     poses = _poses_for(world, Path(capture), eval_state) if world.num_objects else None
     g = world.gaussians(poses=poses) if poses is not None else world.gaussians(state=trained_state)
     rgb, feats = render_gaussians(g, views.viewmats.numpy(), views.Ks.numpy(), views.width, views.height, bg,
-                                  world.rasterize_mode)
+                                  world.splat_options)
     pred_cls = world.classify(feats).argmax(-1) if world.num_objects else None
     gt_imgs = views.images.numpy()
     gt_cls = None if views.classes is None else views.classes.numpy()

@@ -93,7 +93,7 @@ def _grid_png(
         n = min(rows, len(views.images))
         g = w.gaussians(poses=_poses_for(w, capture, state))
         renders[m], _ = render_gaussians(
-            g, views.viewmats[:n].numpy(), views.Ks[:n].numpy(), views.width, views.height, bg, w.rasterize_mode
+            g, views.viewmats[:n].numpy(), views.Ks[:n].numpy(), views.width, views.height, bg, w.splat_options
         )
     n = min(rows, len(views.images))
     grid = [[_u8(views.images[i].numpy())] + [_u8(renders[m][i]) for m in worlds] for i in range(n)]

@@ -301,7 +301,7 @@ class DSGWorldEnv(gym.Env):
         w = self.world
         return SceneRenderer(
             w.background, list(w.objects), cams.viewmats, cams.Ks, cams.width, cams.height,
-            background_color=self.background_color, rasterize_mode=w.rasterize_mode,
+            background_color=self.background_color, **w.splat_options,
             **self.render_settings.kwargs(),
         )  # fmt: skip
 

@@ -18,7 +18,7 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far):
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d):
         C, N = viewmats.shape[0], means.shape[0]
         dt = means.dtype
         m, q, s = _np(means), _np(quats), _np(scales)
@@ -31,9 +31,10 @@ class _Project(torch.autograd.Function):
         rects = torch.empty((C, N, 4), dtype=torch.int32)
         P.project_forward(m, q, s, _np(opacities), vm, K, float(width), float(height),
                           float(near), float(far), means2d.numpy(), conics.numpy(), depths.numpy(),
-                          radii.numpy(), rects.numpy())
+                          radii.numpy(), rects.numpy(), P.ALPHA_MIN, float(eps2d))
         ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii)
         ctx.size = (width, height)
+        ctx.eps2d = float(eps2d)
         ctx.mark_non_differentiable(radii, rects)
         return means2d, conics, depths, radii, rects
 
@@ -56,8 +57,8 @@ class _Project(torch.autograd.Function):
                            _np(Ks).astype(np.float64, copy=False), float(width), float(height),
                            radii.numpy(), grad_or_zeros(v_means2d, (C, N, 2)),
                            grad_or_zeros(v_conics, (C, N, 3)), grad_or_zeros(v_depths, (C, N)),
-                           v_means.numpy(), v_quats.numpy(), v_scales.numpy())
-        return v_means, v_quats, v_scales, None, None, None, None, None, None, None
+                           v_means.numpy(), v_quats.numpy(), v_scales.numpy(), ctx.eps2d)
+        return v_means, v_quats, v_scales, None, None, None, None, None, None, None, None
 
 
 class _Composite(torch.autograd.Function):
@@ -124,10 +125,11 @@ class _Antialias(torch.autograd.Function):
     """Forward with the runtime's kernel (same bits as ``SceneRenderer``), backward in closed form."""
 
     @staticmethod
-    def forward(ctx, conics, opacities):
+    def forward(ctx, conics, opacities, eps2d):
         out = torch.empty(conics.shape[:2], dtype=conics.dtype)
-        P.antialias_opacities(_np(conics), _np(opacities), out.numpy())
+        P.antialias_opacities(_np(conics), _np(opacities), out.numpy(), float(eps2d))
         ctx.save_for_backward(conics, opacities)
+        ctx.eps2d = float(eps2d)
         return out
 
     @staticmethod
@@ -135,7 +137,7 @@ class _Antialias(torch.autograd.Function):
         conics, opacities = ctx.saved_tensors
         c64 = conics.double()
         ca, cb, cc = c64.unbind(-1)
-        b = P.BLUR
+        b = ctx.eps2d
         x = 1.0 - b * (ca + cc) + b * b * (ca * cc - cb * cb)
         pos = x > 0
         r = torch.sqrt(torch.where(pos, x, torch.ones_like(x)))
@@ -145,15 +147,15 @@ class _Antialias(torch.autograd.Function):
         v_conics = torch.stack([k * (b * b * cc - b), k * (-2.0 * b * b * cb), k * (b * b * ca - b)], dim=-1)
         if opacities.shape[0] != conics.shape[0]:
             v_op = v_op.sum(dim=0, keepdim=True)
-        return v_conics.to(conics.dtype), v_op.to(opacities.dtype)
+        return v_conics.to(conics.dtype), v_op.to(opacities.dtype), None
 
 
-def antialias(conics, opacities):
-    return _Antialias.apply(conics, opacities)
+def antialias(conics, opacities, eps2d=P.BLUR):
+    return _Antialias.apply(conics, opacities, eps2d)
 
 
-def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far):
-    return _Project.apply(means, quats, scales, opacities, viewmats, Ks, width, height, near, far)
+def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d=P.BLUR):
+    return _Project.apply(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d)
 
 
 def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, width, height):

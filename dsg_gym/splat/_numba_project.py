@@ -22,7 +22,7 @@ import math
 import numba as nb
 import numpy as np
 
-BLUR = 0.3  # px^2 added to the 2D covariance diagonal (EWA low-pass)
+BLUR = 0.3  # px^2 added to the 2D covariance diagonal by default (EWA low-pass; gsplat's eps2d)
 ALPHA_MIN = 1.0 / 255.0
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 _QNORM_EPS = 1e-12
@@ -79,23 +79,23 @@ def _jacobian(px, py, rz, fx, fy, cx, cy, width, height):
 
 
 @nb.njit(cache=True, inline="always")
-def _cov2d(j00, j02, j11, j12, m00, m01, m02, m10, m11, m12, m20, m21, m22):
-    """A = J Mc (2x3) and the 2D covariance A A^T + blur as (a00..a12, sa, sb, sc)."""
+def _cov2d(j00, j02, j11, j12, m00, m01, m02, m10, m11, m12, m20, m21, m22, blur):
+    """A = J Mc (2x3) and the 2D covariance A A^T + blur I as (a00..a12, sa, sb, sc)."""
     a00 = j00 * m00 + j02 * m20
     a01 = j00 * m01 + j02 * m21
     a02 = j00 * m02 + j02 * m22
     a10 = j11 * m10 + j12 * m20
     a11 = j11 * m11 + j12 * m21
     a12 = j11 * m12 + j12 * m22
-    sa = a00 * a00 + a01 * a01 + a02 * a02 + BLUR
+    sa = a00 * a00 + a01 * a01 + a02 * a02 + blur
     sb = a00 * a10 + a01 * a11 + a02 * a12
-    sc = a10 * a10 + a11 * a11 + a12 * a12 + BLUR
+    sc = a10 * a10 + a11 * a11 + a12 * a12 + blur
     return a00, a01, a02, a10, a11, a12, sa, sb, sc
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _project_one(c, i, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                 means2d, conics, depths, radii, rects, alpha_min):
+                 means2d, conics, depths, radii, rects, alpha_min, blur):
     """Project Gaussian i into camera c (the body of ``project_forward``)."""
     Co = opacities.shape[0]
     radii[c, i, 0] = 0
@@ -140,7 +140,7 @@ def _project_one(c, i, means, quats, scales, opacities, viewmats, Ks, width, hei
     w00, w01, w02, w10, w11, w12, w20, w21, w22 = _cam_rotation(V, r00, r01, r02, r10, r11, r12, r20, r21, r22)
     j00, j02, j11, j12, _, _, _, _ = _jacobian(px, py, rz, fx, fy, cx, cy, width, height)
     _, _, _, _, _, _, sa, sb, sc = _cov2d(j00, j02, j11, j12, w00 * sx, w01 * sy, w02 * sz, w10 * sx, w11 * sy,
-                                          w12 * sz, w20 * sx, w21 * sy, w22 * sz)
+                                          w12 * sz, w20 * sx, w21 * sy, w22 * sz, blur)
     det = sa * sc - sb * sb
     if not (det > 0.0) or not math.isfinite(det):
         conics[c, i, 0] = 0.0
@@ -174,34 +174,34 @@ def _project_one(c, i, means, quats, scales, opacities, viewmats, Ks, width, hei
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                    means2d, conics, depths, radii, rects, alpha_min=ALPHA_MIN):
+                    means2d, conics, depths, radii, rects, alpha_min=ALPHA_MIN, blur=BLUR):
     """Project N Gaussians into C cameras; see the module docstring for the outputs.
 
     means [N,3], quats [N,4] wxyz, scales [N,3], opacities [Co,N] (Co in {1, C}),
     viewmats [C,4,4], Ks [C,3,3]; outputs means2d [C,N,2], conics [C,N,3], depths [C,N],
-    radii [C,N,2] int32, rects [C,N,4] int32.
+    radii [C,N,2] int32, rects [C,N,4] int32; ``blur``: px^2 added to the 2D covariance's diagonal.
     """
     N = means.shape[0]
     for ci in nb.prange(viewmats.shape[0] * N):
         c = ci // N
         _project_one(c, ci - c * N, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                     means2d, conics, depths, radii, rects, alpha_min)
+                     means2d, conics, depths, radii, rects, alpha_min, blur)
 
 
 @nb.njit(cache=True, fastmath=_FASTMATH)
 def project_forward_serial(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                           means2d, conics, depths, radii, rects, alpha_min=ALPHA_MIN):
+                           means2d, conics, depths, radii, rects, alpha_min=ALPHA_MIN, blur=BLUR):
     """``project_forward`` on one thread: cheaper for a few thousand Gaussians (no thread start)."""
     N = means.shape[0]
     for ci in range(viewmats.shape[0] * N):
         c = ci // N
         _project_one(c, ci - c * N, means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-                     means2d, conics, depths, radii, rects, alpha_min)
+                     means2d, conics, depths, radii, rects, alpha_min, blur)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def project_backward(means, quats, scales, viewmats, Ks, width, height, radii,
-                     v_means2d, v_conics, v_depths, v_means, v_quats, v_scales):
+                     v_means2d, v_conics, v_depths, v_means, v_quats, v_scales, blur=BLUR):
     """Gradients of the projection w.r.t. means, quats and scales (summed over cameras).
 
     v_means2d [C,N,2], v_conics [C,N,3], v_depths [C,N]; outputs v_means [N,3], v_quats [N,4],
@@ -269,7 +269,7 @@ def project_backward(means, quats, scales, viewmats, Ks, width, height, radii,
                 m22 = w22 * sz
                 j00, j02, j11, j12, ux, uy, clx, cly = _jacobian(px, py, rz, fx, fy, cx, cy, width, height)
                 a00, a01, a02, a10, a11, a12, sa, sb, sc = _cov2d(j00, j02, j11, j12, m00, m01, m02, m10, m11, m12,
-                                                                  m20, m21, m22)
+                                                                  m20, m21, m22, blur)
                 idet = 1.0 / (sa * sc - sb * sb)
                 ca = sc * idet
                 cb = -sb * idet
@@ -377,19 +377,20 @@ def project_backward(means, quats, scales, viewmats, Ks, width, height, radii,
 
 
 @nb.njit(cache=True)
-def _antialias_one(ca, cb, cc, o):
+def _antialias_one(ca, cb, cc, o, blur):
     # det(Sigma) / det(Sigma + blur I) = det(I - blur * conic), conic = (Sigma + blur I)^-1.
-    x = 1.0 - BLUR * (ca + cc) + BLUR * BLUR * (ca * cc - cb * cb)
+    x = 1.0 - blur * (ca + cc) + blur * blur * (ca * cc - cb * cb)
     return o * math.sqrt(x) if x > 0.0 else 0.0
 
 
 @nb.njit(parallel=True, cache=True)
-def antialias_opacities(conics, opacities, out):
+def antialias_opacities(conics, opacities, out, blur=BLUR):
     """Mip-Splatting's 2D Mip filter as gsplat's ``rasterize_mode="antialiased"``: each Gaussian's opacity
-    times ``sqrt(det Sigma / det(Sigma + BLUR I))``, which keeps a Gaussian's integrated weight when the
+    times ``sqrt(det Sigma / det(Sigma + blur I))``, which keeps a Gaussian's integrated weight when the
     low-pass widens it (a sub-pixel Gaussian fades instead of growing to a pixel).
 
-    conics [C,N,3] (of the blurred covariance, as ``project_forward`` writes them), opacities [Co,N]
+    conics [C,N,3] (of the blurred covariance, as ``project_forward`` writes them with the same ``blur``),
+    opacities [Co,N]
     (Co in {1, C}); out [C,N] is overwritten. Culled Gaussians (conic 0) keep their opacity. float64
     arithmetic without fast-math, so every caller gets the same bits.
     """
@@ -399,15 +400,15 @@ def antialias_opacities(conics, opacities, out):
         c = ci // N
         i = ci - c * N
         out[c, i] = _antialias_one(np.float64(conics[c, i, 0]), np.float64(conics[c, i, 1]),
-                                   np.float64(conics[c, i, 2]), np.float64(opacities[0 if Co == 1 else c, i]))
+                                   np.float64(conics[c, i, 2]), np.float64(opacities[0 if Co == 1 else c, i]), blur)
 
 
 @nb.njit(cache=True)
-def antialias_opacities_serial(conics, opacities, out):
+def antialias_opacities_serial(conics, opacities, out, blur=BLUR):
     """``antialias_opacities`` on one thread (a few thousand Gaussians)."""
     C, N = conics.shape[0], conics.shape[1]
     Co = opacities.shape[0]
     for c in range(C):
         for i in range(N):
             out[c, i] = _antialias_one(np.float64(conics[c, i, 0]), np.float64(conics[c, i, 1]),
-                                       np.float64(conics[c, i, 2]), np.float64(opacities[0 if Co == 1 else c, i]))
+                                       np.float64(conics[c, i, 2]), np.float64(opacities[0 if Co == 1 else c, i]), blur)

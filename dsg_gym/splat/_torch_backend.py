@@ -29,7 +29,7 @@ def _quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ], dim=-1).reshape(quats.shape[:-1] + (3, 3))
 
 
-def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far):
+def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d=BLUR):
     """EWA projection; returns means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N,2]
     int32 and rects [C,N,4] int32 (see ``_numba_project``)."""
     R = _quat_to_rotmat(quats)  # [N,3,3]
@@ -57,9 +57,9 @@ def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, 
     Mc = torch.einsum("cij,njk->cnik", Rw, M)
     A = J @ Mc
     cov = A @ A.transpose(-1, -2)
-    sa = cov[..., 0, 0] + BLUR
+    sa = cov[..., 0, 0] + eps2d
     sb = cov[..., 0, 1]
-    sc = cov[..., 1, 1] + BLUR
+    sc = cov[..., 1, 1] + eps2d
     det = sa * sc - sb * sb
     valid = valid & (det > 0) & torch.isfinite(det)
     det_safe = torch.where(valid, det, torch.ones_like(det))
@@ -87,12 +87,12 @@ def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, 
     return means2d, conics, pz, radii, rects
 
 
-def antialias(conics, opacities):
-    """Opacities ``[C,N]`` of the antialiased mode: ``opacities [Co,N]`` times ``sqrt(det(I - BLUR conic))``
+def antialias(conics, opacities, eps2d=BLUR):
+    """Opacities ``[C,N]`` of the antialiased mode: ``opacities [Co,N]`` times ``sqrt(det(I - eps2d conic))``
     (see ``_numba_project.antialias_opacities``); differentiable in both inputs. The factor is a difference
     of nearly equal terms for sub-pixel Gaussians, so it is formed in float64 as the kernel does."""
     ca, cb, cc = conics.double().unbind(-1)
-    x = 1.0 - BLUR * (ca + cc) + BLUR * BLUR * (ca * cc - cb * cb)
+    x = 1.0 - eps2d * (ca + cc) + eps2d * eps2d * (ca * cc - cb * cb)
     pos = x > 0
     r = torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
     return (opacities.double() * r).to(opacities.dtype)

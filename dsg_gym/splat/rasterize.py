@@ -49,6 +49,7 @@ def rasterize(
     sh_degree: int | None = None,
     backend: str = "auto",
     rasterize_mode: str = "classic",
+    eps2d: float = 0.3,
 ) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Render 3D Gaussians into C cameras (differentiable).
 
@@ -56,7 +57,7 @@ def rasterize(
     pixel ``(x, y)`` has its centre at ``(x + 0.5, y + 0.5)``. Inputs are post-activation (linear
     scales, opacities in [0, 1]).
 
-    Math (3DGS): EWA projection with a 0.3 px^2 low-pass on the 2D covariance (the x/z, y/z used
+    Math (3DGS): EWA projection with an ``eps2d`` (0.3) px^2 low-pass on the 2D covariance (the x/z, y/z used
     by the Jacobian clamped to 1.3x the half field of view); Gaussians with depth outside
     ``[near_plane, far_plane]`` or whose footprint misses the image are culled; per pixel
     ``alpha = min(0.99, o * exp(-0.5 d^T Sigma^-1 d))``, skipped below 1/255; composited front to
@@ -87,6 +88,8 @@ def rasterize(
             ``sqrt(det Sigma2d / det(Sigma2d + 0.3 I))``, so the low-pass keeps its integrated weight
             instead of inflating sub-pixel Gaussians; scenes trained this way render correctly when the
             scale changes (objects moved nearer or farther, other resolutions).
+        eps2d: the low-pass, in px^2, added to each projected 2D covariance's diagonal (3DGS and gsplat:
+            0.3; Mip-Splatting pairs 0.1 with its 3D filter).
 
     Returns:
         ``colors [C, H, W, D(+1)]``, ``alphas [C, H, W, 1]`` and ``meta`` with ``radii [C, N, 2]``
@@ -98,6 +101,8 @@ def rasterize(
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     if rasterize_mode not in RASTERIZE_MODES:
         raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+    if not (isinstance(eps2d, (int, float)) and math.isfinite(eps2d) and 0 < eps2d <= 10):
+        raise ValueError(f"eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if not isinstance(width, int) or not isinstance(height, int) or width < 1 or height < 1:
@@ -168,10 +173,10 @@ def rasterize(
 
     opac2 = opacities if opacities.dim() == 2 else opacities[None]
     means2d, conics, depths, radii, rects = impl.project(
-        means, quats, scales, opac2, viewmats, Ks, width, height, near_plane, far_plane)
+        means, quats, scales, opac2, viewmats, Ks, width, height, near_plane, far_plane, float(eps2d))
 
     if rasterize_mode == "antialiased":
-        opac2 = impl.antialias(conics, opac2)
+        opac2 = impl.antialias(conics, opac2, float(eps2d))
     if render_mode in ("D", "ED"):
         feats = depths[..., None]
     elif render_mode in ("RGB+D", "RGB+ED"):

@@ -47,9 +47,9 @@ def _rows(
     return out
 
 
-def _concat(parts: list[dict[str, torch.Tensor]], rasterize_mode: str) -> SegmentedField:
+def _concat(parts: list[dict[str, torch.Tensor]], rasterize_mode: str, eps2d: float) -> SegmentedField:
     f = SegmentedField(*(torch.cat([p[k] for p in parts], dim=0) for k in PARAM_NAMES))
-    f.configure_filters(rasterize_mode)  # the parts' 3D filter is baked in (SegmentedField.baked_params)
+    f.configure_filters(rasterize_mode, eps2d=eps2d)  # the parts' 3D filter is baked in (baked_params)
     return f
 
 
@@ -91,7 +91,7 @@ def merged_field(
         "background_dropped_1": int(bg1.sum() - m1.sum()),
         "object_sources": [int(s) for s in sources],
     }
-    return _concat(parts, f1.rasterize_mode), torch.cat(classes), info
+    return _concat(parts, f1.rasterize_mode, f1.eps2d), torch.cat(classes), info
 
 
 @torch.no_grad()
@@ -162,6 +162,7 @@ def merged_world(trainer: DualTrainer, extra_metadata: dict[str, Any] | None = N
         "scene_extent": trainer.t1.extent,
         "num_gaussians": field.num,
         "rasterize_mode": field.rasterize_mode,
+        "eps2d": field.eps2d,
         "dual": {
             **trainer.config.to_dict(),
             "ablation": trainer.config.ablation,

@@ -5,7 +5,8 @@ Raw parameters (``nn.Parameter``): ``means [N,3]``, ``quats [N,4]`` (w, x, y, z;
 Activation: scale = exp, opacity = sigmoid, rotation = normalised quaternion, rgb = SH(view dir) + 0.5
 clamped at 0 (3DGS). RGB and the F identity channels are rendered in one rasterizer call.
 
-Mip-Splatting (optional, ``configure_filters``): the renderer's antialiased mode (2D Mip filter) and a 3D
+Mip-Splatting (optional, ``configure_filters``): the renderer's antialiased mode (2D Mip filter, with its
+low-pass ``eps2d``) and a 3D
 smoothing filter, a per-Gaussian isotropic variance ``filter3d [N]`` added to the covariance, sized to the
 finest sampling interval (depth / focal) at which any training camera sees the Gaussian, times
 ``filter3d_scale`` (0.2 in the paper). The filtered scale is ``sqrt(scale^2 + f)`` and the opacity is
@@ -124,14 +125,15 @@ class SegmentedField(nn.Module):
         for name, v in vals.items():
             setattr(self, name, nn.Parameter(v.detach().to(torch.float32).contiguous().clone()))
         self.rasterize_mode = "classic"
+        self.eps2d = 0.3
         self.filter3d_scale = 0.0
         self.filter3d: torch.Tensor | None = None  # [N] variance (world units^2), not trained
         self._filter_cameras: tuple | None = None
 
     # ------------------------------------------------------------------ Mip-Splatting filters
     def configure_filters(self, rasterize_mode: str = "classic", filter3d_scale: float = 0.0,
-                          cameras: tuple | None = None) -> None:
-        """Select the 2D mode and the 3D filter; ``cameras``: ``(viewmats [V,4,4], Ks [V,3,3], width, height)``
+                          cameras: tuple | None = None, eps2d: float = 0.3) -> None:
+        """Select the 2D mode, its low-pass ``eps2d`` (px^2) and the 3D filter; ``cameras``: ``(viewmats [V,4,4], Ks [V,3,3], width, height)``
         the training views that set each Gaussian's sampling rate (needed when ``filter3d_scale > 0``)."""
         if rasterize_mode not in ("classic", "antialiased"):
             raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
@@ -140,6 +142,7 @@ class SegmentedField(nn.Module):
         if filter3d_scale > 0 and cameras is None:
             raise ValueError("the 3D filter needs the training cameras")
         self.rasterize_mode = rasterize_mode
+        self.eps2d = float(eps2d)
         self.filter3d_scale = float(filter3d_scale)
         self._filter_cameras = cameras
         self.filter3d = None
@@ -289,7 +292,7 @@ class SegmentedField(nn.Module):
                 bg = torch.cat([bg, bg.new_zeros(feats.shape[1])])
         out, alpha, meta = rasterize(
             means, quats, scales, opac, cols, viewmats, Ks, int(width), int(height), backgrounds=bg,
-            rasterize_mode=self.rasterize_mode,
+            rasterize_mode=self.rasterize_mode, eps2d=self.eps2d,
         )
         return RenderOutput(
             rgb=out[..., :3], features=out[..., 3:] if with_features else None, alpha=alpha, meta=meta

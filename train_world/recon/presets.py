@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["MIP_FILTER3D_SCALE", "PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset", "mip_overrides"]
+__all__ = ["MIP_EPS2D", "MIP_FILTER3D_SCALE", "PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset", "mip_overrides"]
 
 
 @dataclass(frozen=True)
@@ -59,9 +59,10 @@ class Preset:
     reg3d_k: int = 5
     reg3d_samples: int = 1000
     checkpoint_every: int = 500
-    # Mip-Splatting: the renderer's mode ("antialiased" = 2D Mip filter) and the 3D filter's variance factor
-    # (0: off; the paper's 0.2)
+    # Mip-Splatting: the renderer's mode ("antialiased" = 2D Mip filter), its 2D low-pass in px^2 (3DGS 0.3,
+    # Mip-Splatting 0.1) and the 3D filter's variance factor (0: off; the paper's 0.2)
     rasterize_mode: str = "classic"
+    eps2d: float = 0.3
     filter3d_scale: float = 0.0
     lrs: LearningRates = field(default_factory=LearningRates)
 
@@ -73,6 +74,8 @@ class Preset:
         if self.rasterize_mode not in ("classic", "antialiased"):
             raise ValueError(f"preset {self.name!r}: rasterize_mode must be 'classic' or 'antialiased', "
                              f"got {self.rasterize_mode!r}")
+        if not 0 < self.eps2d <= 10:
+            raise ValueError(f"preset {self.name!r}: eps2d must be in (0, 10] px^2, got {self.eps2d}")
         if not self.filter3d_scale >= 0:
             raise ValueError(f"preset {self.name!r}: filter3d_scale must be >= 0, got {self.filter3d_scale}")
         for name in ("densify_every", "sh_degree_every", "checkpoint_every", "reg3d_every", "reset_every"):
@@ -138,6 +141,7 @@ PRESETS: dict[str, Preset] = {
 
 
 MIP_FILTER3D_SCALE = 0.2  # Mip-Splatting's 3D filter variance factor
+MIP_EPS2D = 0.1  # and its 2D Mip filter's variance (px^2)
 
 
 def mip_overrides(mip: bool | None) -> dict[str, Any]:
@@ -145,8 +149,9 @@ def mip_overrides(mip: bool | None) -> dict[str, Any]:
     classic rasterizer, no 3D filter) or neither (``None``: the preset's own choice)."""
     if mip is None:
         return {}
-    return {"rasterize_mode": "antialiased", "filter3d_scale": MIP_FILTER3D_SCALE} if mip else {
-        "rasterize_mode": "classic", "filter3d_scale": 0.0}
+    if mip:
+        return {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": MIP_FILTER3D_SCALE}
+    return {"rasterize_mode": "classic", "eps2d": 0.3, "filter3d_scale": 0.0}
 
 
 def get_preset(name: str, **overrides: Any) -> Preset:

@@ -153,7 +153,8 @@ class Trainer:
 
     def _configure_filters(self) -> None:
         d, p = self.data, self.preset
-        self.field.configure_filters(p.rasterize_mode, p.filter3d_scale, (d.viewmats, d.Ks, d.width, d.height))
+        self.field.configure_filters(p.rasterize_mode, p.filter3d_scale, (d.viewmats, d.Ks, d.width, d.height),
+                                     p.eps2d)
 
     # ------------------------------------------------------------------ one step
     def _next_view(self) -> int:
@@ -341,6 +342,7 @@ class Trainer:
             "scene_extent": self.extent,
             "num_gaussians": self.field.num,
             "rasterize_mode": self.preset.rasterize_mode,
+            "eps2d": self.preset.eps2d,
             **(extra_metadata or {}),
         }
         if "name" in d.source:

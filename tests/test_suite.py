@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 
+from dsg_gym.world import load_world
 from train_world.suite import main as suite_main
 
 
@@ -14,7 +15,7 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
     out = tmp_path / "suite"
     rc = suite_main(["--out", str(out), "--scenes", "two_blocks", "--methods", "a,b,BC,BCP", "--preset", "quick",
                      "--iterations", "40", "--width", "24", "--height", "24", "--views", "8", "--test-views", "2",
-                     "--test-states", "1", "--max-gaussians", "4000"])
+                     "--test-states", "1", "--max-gaussians", "4000", "--mip"])
     assert rc == 0
     table = json.loads((out / "table.json").read_text())
     runs = table["scenes"]["two_blocks"]
@@ -23,6 +24,9 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
         assert np.isfinite(r["mean"]["psnr"]) and 0 < r["mean"]["ssim"] <= 1, (m, r)
         assert set(r["per_state"]) == {"test_0"}
     wdir = out / "worlds" / "two_blocks"
+    assert table["mip"] is True  # every world trained (or derived) with the Mip-Splatting filters
+    assert all(load_world(wdir / f"{m}.dsgw").splat_options == {"rasterize_mode": "antialiased", "eps2d": 0.1}
+               for m in runs)
     # one shared reconstruction phase, recorded in both ablations' training figures
     recon = json.loads((wdir / "recon.json").read_text())
     assert recon["step"] == 20

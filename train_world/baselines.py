@@ -34,15 +34,18 @@ def train_single_state(
     state: str = "state1",
     progress: bool = False,
     max_gaussians: int | None = None,
+    mip: bool | None = None,
 ) -> dict:
     """Baseline (a): train one field on ``state`` (schedule scaled to ``iterations`` as in the two-state
-    CLI) and write its world to ``out``; returns ``{"world", "train_seconds", "gaussians"}``."""
+    CLI; ``mip`` as ``dsg-train --mip/--no-mip``) and write its world to ``out``; returns ``{"world",
+    "train_seconds", "gaussians"}``."""
     from train_world.dual.cli import scaled_preset
     from train_world.recon.data import load_training_data
-    from train_world.recon.presets import TrainConfig
+    from train_world.recon.presets import TrainConfig, mip_overrides
     from train_world.recon.trainer import Trainer
 
-    cfg = TrainConfig(preset=scaled_preset(preset, iterations, max_gaussians), seed=seed, state=state)
+    p = dataclasses.replace(scaled_preset(preset, iterations, max_gaussians), **mip_overrides(mip))
+    cfg = TrainConfig(preset=p, seed=seed, state=state)
     tr = Trainer(load_training_data(capture, cfg), cfg)
     tr.train(progress=progress)
     tr.write_world(out, {"baseline": "a: single-state segmentation"})
@@ -160,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--iterations", type=int)
     a.add_argument("--seed", type=int, default=0)
     a.add_argument("--max-gaussians", type=int, help="cap on the field's Gaussian count (default: preset's)")
+    a.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
+                   help="Mip-Splatting filters, as dsg-train --mip (default: the preset's)")
     b = sub.add_parser("knn", help="baseline (b): kNN background completion of a single-state world")
     b.add_argument("world", type=Path)
     b.add_argument("--out", type=Path, required=True)
@@ -175,6 +180,7 @@ def main(argv: list[str] | None = None) -> int:
                 iterations=args.iterations,
                 seed=args.seed,
                 max_gaussians=args.max_gaussians,
+                mip=args.mip,
             )
         else:
             from dsg_gym.world import load_world

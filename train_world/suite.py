@@ -111,6 +111,7 @@ def run_suite(
     seed: int = 0,
     pseudo_every: int = 1,
     max_gaussians: int | None = None,
+    mip: bool | None = None,
 ) -> dict[str, Any]:
     """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``."""
     from train_world.data import load_capture
@@ -118,7 +119,8 @@ def run_suite(
 
     out = Path(out)
     py = sys.executable
-    results: dict[str, Any] = {"preset": preset, "iterations": iterations, "scenes": {}, "methods": methods}
+    results: dict[str, Any] = {"preset": preset, "iterations": iterations, "mip": mip, "scenes": {},
+                               "methods": methods}
     for scene in scenes:
         cap = out / "data" / scene
         logs = out / "logs" / scene
@@ -147,6 +149,8 @@ def run_suite(
         it = [] if iterations is None else ["--iterations", str(iterations)]
         if max_gaussians is not None:
             it += ["--max-gaussians", str(max_gaussians)]
+        if mip is not None:
+            it += ["--mip" if mip else "--no-mip"]
         single = [py, "-m", "train_world.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed), *it]
         dual = [py, "-m", "train_world.dual.cli", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
                 "--pseudo-every", str(pseudo_every), *it]
@@ -270,6 +274,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--pseudo-every", type=int, default=1)
     p.add_argument("--max-gaussians", type=int, help="cap on each field's Gaussian count (default: preset's)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
+                   help="train every world with (or without) the Mip-Splatting filters (default: the preset's)")
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--views", type=int)
@@ -301,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             pseudo_every=args.pseudo_every,
             max_gaussians=args.max_gaussians,
+            mip=args.mip,
         )
     except (RuntimeError, ValueError) as e:
         print(f"dsg-suite: error: {e}", file=sys.stderr)

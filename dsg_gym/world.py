@@ -18,9 +18,10 @@ tensor                                 shape / dtype        meaning
 
 ``<field>`` is ``means quats scales opacities sh features labels`` and optionally ``opacity_logits
 log_scales`` (the exact raw values). The JSON document lists the objects ``[{id, name, class}]``, the states,
-camera sizes, units, ``metadata`` (training config, source, ``rasterize_mode``: "classic" when absent, or
-"antialiased" for worlds trained with the Mip filter, see :func:`dsg_gym.splat.rasterize`) and a SHA-256 of the tensor bytes, so a
-truncated or altered file is refused with :class:`WorldFormatError`, as is an unknown format version.
+camera sizes, units, ``metadata`` (training config, source, and the renderer options the world was trained
+with: ``rasterize_mode`` "classic" or "antialiased" and ``eps2d``, see :func:`dsg_gym.splat.rasterize` and
+:attr:`World.splat_options`; absent: "classic", 0.3) and a SHA-256 of the tensor bytes, so a truncated or
+altered file is refused with :class:`WorldFormatError`, as is an unknown format version.
 """
 
 from __future__ import annotations

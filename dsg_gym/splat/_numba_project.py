@@ -399,8 +399,9 @@ def antialias_opacities(conics, opacities, out, blur=BLUR):
     for ci in nb.prange(C * N):
         c = ci // N
         i = ci - c * N
+        o = np.float64(opacities[0 if Co == 1 else c, i])
         out[c, i] = _antialias_one(np.float64(conics[c, i, 0]), np.float64(conics[c, i, 1]),
-                                   np.float64(conics[c, i, 2]), np.float64(opacities[0 if Co == 1 else c, i]), blur)
+                                   np.float64(conics[c, i, 2]), o, blur)
 
 
 @nb.njit(cache=True)
@@ -410,5 +411,6 @@ def antialias_opacities_serial(conics, opacities, out, blur=BLUR):
     Co = opacities.shape[0]
     for c in range(C):
         for i in range(N):
+            o = np.float64(opacities[0 if Co == 1 else c, i])
             out[c, i] = _antialias_one(np.float64(conics[c, i, 0]), np.float64(conics[c, i, 1]),
-                                       np.float64(conics[c, i, 2]), np.float64(opacities[0 if Co == 1 else c, i]), blur)
+                                       np.float64(conics[c, i, 2]), o, blur)

@@ -6,9 +6,8 @@ Activation: scale = exp, opacity = sigmoid, rotation = normalised quaternion, rg
 clamped at 0 (3DGS). RGB and the F identity channels are rendered in one rasterizer call.
 
 Mip-Splatting (optional, ``configure_filters``): the renderer's antialiased mode (2D Mip filter, with its
-low-pass ``eps2d``) and a 3D
-smoothing filter, a per-Gaussian isotropic variance ``filter3d [N]`` added to the covariance, sized to the
-finest sampling interval (depth / focal) at which any training camera sees the Gaussian, times
+low-pass ``eps2d``) and a 3D smoothing filter, a per-Gaussian isotropic variance ``filter3d [N]`` added to the
+covariance, sized to the finest sampling interval (depth / focal) at which any training camera sees the Gaussian, times
 ``filter3d_scale`` (0.2 in the paper). The filtered scale is ``sqrt(scale^2 + f)`` and the opacity is
 multiplied by ``sqrt(prod scale^2 / prod(scale^2 + f))``; both are baked into ``to_gaussian_set``, so the
 runtime needs only the 2D mode. Densification sees the unfiltered parameters (as Mip-Splatting).
@@ -133,8 +132,9 @@ class SegmentedField(nn.Module):
     # ------------------------------------------------------------------ Mip-Splatting filters
     def configure_filters(self, rasterize_mode: str = "classic", filter3d_scale: float = 0.0,
                           cameras: tuple | None = None, eps2d: float = 0.3) -> None:
-        """Select the 2D mode, its low-pass ``eps2d`` (px^2) and the 3D filter; ``cameras``: ``(viewmats [V,4,4], Ks [V,3,3], width, height)``
-        the training views that set each Gaussian's sampling rate (needed when ``filter3d_scale > 0``)."""
+        """Select the 2D mode, its low-pass ``eps2d`` (px^2) and the 3D filter. ``cameras``: ``(viewmats [V,4,4],
+        Ks [V,3,3], width, height)`` of the training views that set each Gaussian's sampling rate (needed when
+        ``filter3d_scale > 0``)."""
         if rasterize_mode not in ("classic", "antialiased"):
             raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
         if not filter3d_scale >= 0.0:

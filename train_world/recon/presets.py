@@ -12,7 +12,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["MIP_EPS2D", "MIP_FILTER3D_SCALE", "PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset", "mip_overrides"]
+__all__ = ["MIP_EPS2D", "MIP_FILTER3D_SCALE", "PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset",
+           "mip_overrides"]
 
 
 @dataclass(frozen=True)

@@ -123,12 +123,14 @@ def _has(g: GaussianSet, p: np.ndarray) -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- scores
-def test_accumulated_weight_is_the_colour_gradient_of_ones():
+@pytest.mark.parametrize("splat", [{}, {"rasterize_mode": "antialiased", "eps2d": 0.1}])
+def test_accumulated_weight_is_the_colour_gradient_of_ones(splat):
     g = _random_set(40, 0)
     vm, K, W, H = _two_cameras()
-    imp = gaussian_importance(g, vm, K, W, H)
+    imp = gaussian_importance(g, vm, K, W, H, **splat)
     ones = torch.ones((2, g.num, 1), requires_grad=True)
-    img, _, _ = rasterize(_t(g.means), _t(g.quats), _t(g.scales), _t(g.opacities), ones, _t(vm), _t(K), W, H)
+    img, _, _ = rasterize(_t(g.means), _t(g.quats), _t(g.scales), _t(g.opacities), ones, _t(vm), _t(K), W, H,
+                          **splat)
     img.sum().backward()
     per_cam = ones.grad[..., 0].double().numpy()  # d(sum of image)/d(colour) = sum_p T alpha
     assert imp.num_cameras == 2 and per_cam.max() > 1.0  # the Gaussians are visible

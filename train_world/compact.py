@@ -210,8 +210,9 @@ def _parts(
     return parts
 
 
-def _score(part: _Part, cams: SceneCameras, bg) -> tuple[np.ndarray, np.ndarray]:
-    """(weight max [N], removal error per view [N]) of the part's kept Gaussians (NaN where removed)."""
+def _score(part: _Part, cams: SceneCameras, bg, splat: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(weight max [N], removal error per view [N]) of the part's kept Gaussians (NaN where removed), rendered
+    with the world's ``splat`` options."""
     imp = gaussian_importance(
         part.kept(),
         part.viewmats,
@@ -219,6 +220,7 @@ def _score(part: _Part, cams: SceneCameras, bg) -> tuple[np.ndarray, np.ndarray]
         cams.width,
         cams.height,
         background=bg,
+        **splat,
     )
     w, e = np.full(part.g.num, np.nan), np.full(part.g.num, np.nan)
     w[part.keep] = imp.weight_max
@@ -296,8 +298,9 @@ def _removed(parts: list[_Part], base: list[np.ndarray], sel: list[tuple[int, in
 class _Search:
     """The pruning state: parts with their keep masks, the budget check and the log of rounds."""
 
-    def __init__(self, parts: list[_Part], check, cams: SceneCameras, bg, cfg: CompactConfig, log):
+    def __init__(self, parts: list[_Part], check, cams: SceneCameras, bg, cfg: CompactConfig, log, splat: dict):
         self.parts, self.check, self.cams, self.bg, self.cfg, self.log = parts, check, cams, bg, cfg, log
+        self.splat = splat
         self.rounds: list[dict[str, Any]] = []
         self.res: dict[str, Any] = {}
         self.refits = 0
@@ -313,7 +316,7 @@ class _Search:
         return res
 
     def errors(self) -> list[np.ndarray]:
-        return [_score(p, self.cams, self.bg)[1] for p in self.parts]
+        return [_score(p, self.cams, self.bg, self.splat)[1] for p in self.parts]
 
     def search(self, errors: list[np.ndarray], floor: int) -> None:
         """Rounds of neighbour-aware removal until the budget breaks (then bisect that round) or ``floor``."""
@@ -375,6 +378,7 @@ class _Search:
                 sh_degrees=p.sh_need[p.keep],
                 fit_means=k == 0,
                 min_opacity=floor,
+                splat_options=self.splat,
                 seed=self.refits,
             )
             p.protected, p.sh_need = p.protected[p.keep], p.sh_need[p.keep]
@@ -423,11 +427,11 @@ def compact_world(
         timings["reference_s"] = time.perf_counter() - t
         t = time.perf_counter()
         parts = _parts(world, [truncate_sh(g, cfg.sh_tolerance) for g in originals], cams, cfg)
-        scores = [_score(p, cams, bg_color) for p in parts]
+        scores = [_score(p, cams, bg_color, world.splat_options) for p in parts]
         for p, (w, _) in zip(parts, scores):
             p.keep = (w >= cfg.min_weight) | p.protected
         timings["scoring_s"] = time.perf_counter() - t
-        s = _Search(parts, check, cams, bg_color, cfg, log)
+        s = _Search(parts, check, cams, bg_color, cfg, log, world.splat_options)
         s.res = s.run_check("sh+invisible")
         sh_truncated = True
         if not (s.res["ok"] or cfg.fraction is not None):  # the SH cut alone breaks the budget: keep SH

@@ -81,7 +81,7 @@ def _tile_scores(
 ):
     """Per-(tile, Gaussian) slots: ``pair_out[s] = (sum w, sum ||dC||^2)`` over the tile's pixels.
 
-    means2d [C,N,2], conics [C,N,3], opacities [1,N], colors [C,N,3] float32; bg [3] float64;
+    means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in {1, C}), colors [C,N,3] float32; bg [3] float64;
     pair_out [P,2] float64 zero-initialised (slots of Gaussians never reached stay zero).
     """
     C = means2d.shape[0]
@@ -97,6 +97,7 @@ def _tile_scores(
         if tile_offsets[ct] == tile_offsets[ct + 1]:
             continue
         c = ct // T
+        co = 0 if opacities.shape[0] == 1 else c
         px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = R.tile_state(
             ct - c * T, tiles_x, width, height, 3, np.float32
         )
@@ -113,7 +114,7 @@ def _tile_scores(
                 conics[c, g, 0],
                 conics[c, g, 1],
                 conics[c, g, 2],
-                opacities[0, g],
+                opacities[co, g],
                 rects[c, g, 0],
                 rects[c, g, 1],
                 rects[c, g, 2],
@@ -149,7 +150,7 @@ def _tile_scores(
             ca = conics[c, g, 0] * half
             cb = conics[c, g, 1]
             cc_ = conics[c, g, 2] * half
-            o = opacities[0, g]
+            o = opacities[co, g]
             logo = math.log(np.float64(o) / np.float64(amin))
             smax = zero + np.float32(logo * 1.0001 + 1e-4)
             y0 = max(rects[c, g, 2], py0) - py0
@@ -250,9 +251,12 @@ def gaussian_importance(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     chunk: int = 8,
+    rasterize_mode: str = "classic",
+    eps2d: float = P.BLUR,
 ) -> Importance:
     """Scores of every Gaussian of ``g`` (rendered alone, over ``background``) in the cameras
-    ``viewmats [C,4,4]`` (OpenCV world-to-camera), ``Ks [C,3,3]``; ``chunk`` cameras per kernel call."""
+    ``viewmats [C,4,4]`` (OpenCV world-to-camera), ``Ks [C,3,3]``; ``chunk`` cameras per kernel call;
+    ``rasterize_mode`` and ``eps2d`` as the world is rendered (``World.splat_options``)."""
     viewmats = np.ascontiguousarray(viewmats, np.float64)
     Ks = np.ascontiguousarray(Ks, np.float64)
     if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4) or Ks.shape != (len(viewmats), 3, 3):
@@ -295,14 +299,20 @@ def gaussian_importance(
             dp,
             radii,
             rects,
+            R.ALPHA_MIN,
+            float(eps2d),
         )
+        op = opac
+        if rasterize_mode == "antialiased":  # per-camera opacities after the 2D Mip filter
+            op = np.empty((C, n), np.float32)
+            P.antialias_opacities(cn, opac, op, float(eps2d))
         order, counts = R.depth_order(dp.view(np.uint32), rects)
         t_off, t_gauss, g_off, g_pairs = R.bin_gaussians(rects, order, counts, tiles_x, tiles_y)
         pair_out = np.zeros((len(t_gauss), 2), np.float64)
         _tile_scores(
             m2,
             cn,
-            opac,
+            op,
             view_colors(g, vm),
             rects,
             t_off,

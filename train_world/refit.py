@@ -31,7 +31,7 @@ def _t(a) -> torch.Tensor:
 
 
 @torch.no_grad()
-def _targets(g: GaussianSet, vm: torch.Tensor, K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+def _targets(g: GaussianSet, vm: torch.Tensor, K: torch.Tensor, width: int, height: int, splat: dict) -> torch.Tensor:
     """``[V,H,W,4]`` RGB over black and alpha of ``g``."""
     out = []
     for a in range(0, len(vm), 8):
@@ -46,6 +46,7 @@ def _targets(g: GaussianSet, vm: torch.Tensor, K: torch.Tensor, width: int, heig
             width,
             height,
             sh_degree=g.sh_degree,
+            **splat,
         )
         out.append(torch.cat([rgb, alpha], -1))
     return torch.cat(out)
@@ -67,17 +68,20 @@ def refit(
     min_opacity: np.ndarray | None = None,
     views_per_step: int = 2,
     seed: int = 0,
+    splat_options: dict | None = None,
 ) -> GaussianSet:
     """``g`` (``N`` Gaussians) refitted to ``original``'s renders in ``viewmats [V,4,4]``, ``Ks [V,3,3]``.
 
     ``sh_degrees [N]``: per-Gaussian SH degree (bands above stay zero; default: all of ``g``'s bands);
     ``min_opacity [N]``: lower bounds on the opacities (default none). Returns a new set with consistent raw
     encodings (``opacity_logits``, ``log_scales`` are the fitted values); ``steps == 0`` returns ``g``.
+    ``splat_options``: the world's renderer options (``World.splat_options``; default: 3DGS's).
     """
     if steps <= 0 or g.num == 0 or len(viewmats) == 0:
         return g
     vm, K = _t(viewmats), _t(Ks)
-    target = _targets(original, vm, K, width, height)
+    splat = dict(splat_options or {})
+    target = _targets(original, vm, K, width, height, splat)
     k = g.sh.shape[1]
     deg = np.full(g.num, g.sh_degree) if sh_degrees is None else np.asarray(sh_degrees)
     band = torch.from_numpy((np.arange(k)[None, :] < (deg[:, None] + 1) ** 2).astype(np.float32))[..., None]
@@ -111,6 +115,7 @@ def refit(
             width,
             height,
             sh_degree=g.sh_degree,
+            **splat,
         )
         loss = (rgb - target[idx, ..., :3]).abs().mean() + (alpha - target[idx, ..., 3:]).abs().mean()
         opt.zero_grad(set_to_none=True)

@@ -137,6 +137,20 @@ def test_resume_with_the_3d_filter_gives_the_same_world(tiny, tmp_path):
     assert classic.field.filter3d is None and classic.world().metadata["rasterize_mode"] == "classic"
 
 
+def test_presets_default_to_mip_except_quick():
+    for name in ("default", "paper"):
+        p = get_preset(name)
+        assert (p.rasterize_mode, p.eps2d, p.filter3d_scale) == ("antialiased", 0.1, MIP_FILTER3D_SCALE)
+    q = get_preset("quick")
+    assert (q.rasterize_mode, q.eps2d, q.filter3d_scale) == ("classic", 0.3, 0.0)
+    # a configuration stored before these fields existed reads back as the classic renderer it was trained with
+    d = TrainConfig(preset=get_preset("default")).to_dict()
+    for k in ("rasterize_mode", "eps2d", "filter3d_scale"):
+        del d["preset"][k]
+    old = TrainConfig.from_dict(d).preset
+    assert (old.rasterize_mode, old.eps2d, old.filter3d_scale) == ("classic", 0.3, 0.0)
+
+
 def test_cli_mip_switch(tiny, tmp_path):
     for flag, mode, scale in (("--mip", "antialiased", MIP_FILTER3D_SCALE), ("--no-mip", "classic", 0.0)):
         out = tmp_path / f"{flag}.dsgw"

@@ -93,6 +93,14 @@ class Preset:
         return cls(**d)
 
 
+MIP_FILTER3D_SCALE = 0.2  # Mip-Splatting's 3D filter variance factor
+MIP_EPS2D = 0.1  # and its 2D Mip filter's variance (px^2)
+_MIP = {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": MIP_FILTER3D_SCALE}
+
+# ``default`` and ``paper`` train with Mip-Splatting's filters (README "Mip-Splatting": on two_blocks, +0.4 dB
+# on held-out views, +0.1 dB on novel states, and object PSNR that holds up when the camera is nearer or
+# farther than in the capture); ``quick`` keeps 3DGS's classic rasterizer: on its 32-pixel test data the 3D
+# filter is a large fraction of the scene and cost 2 dB.
 PRESETS: dict[str, Preset] = {
     "quick": Preset(
         name="quick",
@@ -123,6 +131,7 @@ PRESETS: dict[str, Preset] = {
         reg3d_every=5,
         reg3d_samples=1000,
         checkpoint_every=500,
+        **_MIP,
     ),
     "paper": Preset(
         name="paper",
@@ -137,12 +146,9 @@ PRESETS: dict[str, Preset] = {
         max_gaussians=1_000_000,
         reg3d_every=2,
         checkpoint_every=1000,
+        **_MIP,
     ),
 }
-
-
-MIP_FILTER3D_SCALE = 0.2  # Mip-Splatting's 3D filter variance factor
-MIP_EPS2D = 0.1  # and its 2D Mip filter's variance (px^2)
 
 
 def mip_overrides(mip: bool | None) -> dict[str, Any]:
@@ -151,7 +157,7 @@ def mip_overrides(mip: bool | None) -> dict[str, Any]:
     if mip is None:
         return {}
     if mip:
-        return {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": MIP_FILTER3D_SCALE}
+        return dict(_MIP)
     return {"rasterize_mode": "classic", "eps2d": 0.3, "filter3d_scale": 0.0}
 
 

@@ -24,7 +24,7 @@ from .gaussians import GaussianSet
 from .splat import _numba_incremental as I
 from .splat import _numba_project as P
 from .splat import _numba_raster as R
-from .splat.rasterize import RASTERIZE_MODES
+from .splat_options import DEFAULT_EPS2D, check_splat_options
 
 
 @dataclass(frozen=True)
@@ -144,12 +144,8 @@ class SceneRenderer:
     def __init__(self, background: GaussianSet, objects: Sequence[GaussianSet], viewmats, Ks, width: int,
                  height: int, background_color=(0.0, 0.0, 0.0), near_plane: float = 0.01,
                  far_plane: float = 1e10, alpha_min: float = R.ALPHA_MIN, t_min: float = R.T_MIN,
-                 sh_degree: int | None = None, rasterize_mode: str = "classic", eps2d: float = P.BLUR):
-        if rasterize_mode not in RASTERIZE_MODES:
-            raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
-        if not (isinstance(eps2d, (int, float)) and np.isfinite(eps2d) and 0 < eps2d <= 10):
-            raise ValueError(f"eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
-        self.rasterize_mode, self.eps2d = rasterize_mode, float(eps2d)
+                 sh_degree: int | None = None, rasterize_mode: str = "classic", eps2d: float = DEFAULT_EPS2D):
+        self.rasterize_mode, self.eps2d = check_splat_options(rasterize_mode, eps2d)
         self._consts = R.make_consts(np.float32, alpha_min, t_min)
         self.alpha_min, self.t_min = float(alpha_min), float(t_min)
         self.background = background

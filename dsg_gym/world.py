@@ -41,6 +41,7 @@ import numpy as np
 from .gaussians import GaussianSet
 from .poses import quat_multiply, quat_normalize, rotmat_to_quat
 from .sh_basis import rotate_sh
+from .splat_options import DEFAULT_EPS2D, check_splat_options
 
 __all__ = [
     "FORMAT_NAME",
@@ -57,7 +58,6 @@ __all__ = [
 ]
 
 FORMAT_NAME = "dsg-world"
-RASTERIZE_MODES = ("classic", "antialiased")  # as dsg_gym.splat.RASTERIZE_MODES (this module loads without torch)
 FORMAT_VERSION = 1
 GAUSSIAN_FIELDS = ("means", "quats", "scales", "opacities", "sh", "features", "labels")
 OPTIONAL_FIELDS = ("opacity_logits", "log_scales")
@@ -188,13 +188,12 @@ _DTYPES = {"F32": np.float32, "F64": np.float64, "I32": np.int32, "I64": np.int6
 def splat_options(metadata: Mapping[str, Any]) -> dict[str, Any]:
     """``{"rasterize_mode", "eps2d"}`` from a world's metadata (absent: "classic", 0.3); WorldFormatError when
     they are not valid."""
-    mode = metadata.get("rasterize_mode", "classic")
-    if mode not in RASTERIZE_MODES:
-        raise WorldFormatError(f"unknown rasterize_mode {mode!r} in the world metadata (known: {RASTERIZE_MODES})")
-    eps2d = metadata.get("eps2d", 0.3)
-    if isinstance(eps2d, bool) or not isinstance(eps2d, (int, float)) or not 0 < eps2d <= 10:
-        raise WorldFormatError(f"world metadata eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
-    return {"rasterize_mode": str(mode), "eps2d": float(eps2d)}
+    try:
+        mode, eps2d = check_splat_options(metadata.get("rasterize_mode", "classic"),
+                                          metadata.get("eps2d", DEFAULT_EPS2D))
+    except ValueError as e:
+        raise WorldFormatError(f"world metadata: {e}") from None
+    return {"rasterize_mode": mode, "eps2d": eps2d}
 
 
 def _fail(src: str, msg: str) -> WorldFormatError:

@@ -19,6 +19,7 @@ import numpy as np
 
 from .gaussians import GaussianSet
 from .poses import as_poses7, pose7_to_matrix
+from .world import splat_options
 from .world import transform_gaussians as _transform_matrix
 
 __all__ = ["Cameras", "TableBounds", "WorldModel", "WorldModelError"]
@@ -155,8 +156,6 @@ class WorldModel:
     @property
     def splat_options(self) -> dict[str, Any]:
         """Renderer keyword arguments the world was trained with (:attr:`dsg_gym.world.World.splat_options`)."""
-        from .world import splat_options
-
         return splat_options(self.metadata)
 
     @property

@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from . import _numba_project as P
+from . import _torch_backend
 from . import _numba_raster as R
 
 
@@ -122,7 +123,8 @@ class _Composite(torch.autograd.Function):
 
 
 class _Antialias(torch.autograd.Function):
-    """Forward with the runtime's kernel (same bits as ``SceneRenderer``), backward in closed form."""
+    """Forward with the runtime's kernel (same bits as ``SceneRenderer``), backward through the torch
+    reference's formula (one definition of the derivative)."""
 
     @staticmethod
     def forward(ctx, conics, opacities, eps2d):
@@ -135,19 +137,12 @@ class _Antialias(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_out):
         conics, opacities = ctx.saved_tensors
-        c64 = conics.double()
-        ca, cb, cc = c64.unbind(-1)
-        b = ctx.eps2d
-        x = 1.0 - b * (ca + cc) + b * b * (ca * cc - cb * cb)
-        pos = x > 0
-        r = torch.sqrt(torch.where(pos, x, torch.ones_like(x)))
-        g = v_out.double()
-        v_op = torch.where(pos, g * r, torch.zeros_like(x))
-        k = torch.where(pos, g * opacities.double() / (2.0 * r), torch.zeros_like(x))  # d out / d x
-        v_conics = torch.stack([k * (b * b * cc - b), k * (-2.0 * b * b * cb), k * (b * b * ca - b)], dim=-1)
-        if opacities.shape[0] != conics.shape[0]:
-            v_op = v_op.sum(dim=0, keepdim=True)
-        return v_conics.to(conics.dtype), v_op.to(opacities.dtype), None
+        with torch.enable_grad():
+            c = conics.detach().requires_grad_(True)
+            o = opacities.detach().requires_grad_(True)
+            out = _torch_backend.antialias(c, o, ctx.eps2d)
+            v_conics, v_op = torch.autograd.grad(out, (c, o), v_out)
+        return v_conics, v_op, None
 
 
 def antialias(conics, opacities, eps2d=P.BLUR):

@@ -22,7 +22,9 @@ import math
 import numba as nb
 import numpy as np
 
-BLUR = 0.3  # px^2 added to the 2D covariance diagonal by default (EWA low-pass; gsplat's eps2d)
+from ..splat_options import DEFAULT_EPS2D
+
+BLUR = DEFAULT_EPS2D  # px^2 added to the 2D covariance diagonal by default (EWA low-pass; gsplat's eps2d)
 ALPHA_MIN = 1.0 / 255.0
 _FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 _QNORM_EPS = 1e-12

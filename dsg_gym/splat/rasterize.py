@@ -8,11 +8,11 @@ from typing import Any
 import torch
 
 from . import _numba_backend, _torch_backend
+from ..splat_options import DEFAULT_EPS2D, RASTERIZE_MODES, check_splat_options
 from .sh import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 BACKENDS = ("auto", "numba", "torch")
-RASTERIZE_MODES = ("classic", "antialiased")
 
 
 def _check_tensor(name: str, t: Any, shape: tuple, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -49,7 +49,7 @@ def rasterize(
     sh_degree: int | None = None,
     backend: str = "auto",
     rasterize_mode: str = "classic",
-    eps2d: float = 0.3,
+    eps2d: float = DEFAULT_EPS2D,
 ) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Render 3D Gaussians into C cameras (differentiable).
 
@@ -99,10 +99,7 @@ def rasterize(
     """
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
-    if rasterize_mode not in RASTERIZE_MODES:
-        raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
-    if not (isinstance(eps2d, (int, float)) and math.isfinite(eps2d) and 0 < eps2d <= 10):
-        raise ValueError(f"eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
+    rasterize_mode, eps2d = check_splat_options(rasterize_mode, eps2d)
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if not isinstance(width, int) or not isinstance(height, int) or width < 1 or height < 1:

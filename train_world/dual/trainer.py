@@ -307,9 +307,8 @@ class DualTrainer:
         self.step += 1
         t1.strategy.after_backward(self.step, t1.field, t1.optimizers, meta1, t1.generator)
         t2.strategy.after_backward(self.step, t2.field, t2.optimizers, meta2, t2.generator)
-        if p.filter3d_scale > 0 and self.step % p.densify_every == 0:
-            t1.field.update_filter3d()
-            t2.field.update_filter3d()
+        t1.refresh_filter3d(self.step)
+        t2.refresh_filter3d(self.step)
         if cfg.use_prune and joint and (self.step - self.joint_start) % cfg.prune_every == 0:
             self.co_prune()
         t1.step = t2.step = self.step

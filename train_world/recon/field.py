@@ -30,6 +30,7 @@ from torch import nn
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.geometry import quat_multiply, rotmat_to_quat
 from dsg_gym.splat import rasterize, spherical_harmonics
+from dsg_gym.splat_options import DEFAULT_EPS2D, check_splat_options
 
 __all__ = ["PARAM_NAMES", "Classifier", "RenderOutput", "SegmentedField", "filter3d_variance",
            "rigid_transform_gaussians"]
@@ -124,25 +125,24 @@ class SegmentedField(nn.Module):
         for name, v in vals.items():
             setattr(self, name, nn.Parameter(v.detach().to(torch.float32).contiguous().clone()))
         self.rasterize_mode = "classic"
-        self.eps2d = 0.3
+        self.eps2d = DEFAULT_EPS2D
         self.filter3d_scale = 0.0
         self.filter3d: torch.Tensor | None = None  # [N] variance (world units^2), not trained
         self._filter_cameras: tuple | None = None
 
     # ------------------------------------------------------------------ Mip-Splatting filters
     def configure_filters(self, rasterize_mode: str = "classic", filter3d_scale: float = 0.0,
-                          cameras: tuple | None = None, eps2d: float = 0.3) -> None:
+                          cameras: tuple | None = None, eps2d: float = DEFAULT_EPS2D) -> None:
         """Select the 2D mode, its low-pass ``eps2d`` (px^2) and the 3D filter. ``cameras``: ``(viewmats [V,4,4],
         Ks [V,3,3], width, height)`` of the training views that set each Gaussian's sampling rate (needed when
         ``filter3d_scale > 0``)."""
-        if rasterize_mode not in ("classic", "antialiased"):
-            raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+        rasterize_mode, eps2d = check_splat_options(rasterize_mode, eps2d)
         if not filter3d_scale >= 0.0:
             raise ValueError(f"filter3d_scale must be >= 0, got {filter3d_scale}")
         if filter3d_scale > 0 and cameras is None:
             raise ValueError("the 3D filter needs the training cameras")
         self.rasterize_mode = rasterize_mode
-        self.eps2d = float(eps2d)
+        self.eps2d = eps2d
         self.filter3d_scale = float(filter3d_scale)
         self._filter_cameras = cameras
         self.filter3d = None

@@ -12,6 +12,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from dsg_gym.splat_options import DEFAULT_EPS2D, check_splat_options
+
 __all__ = ["MIP_EPS2D", "MIP_FILTER3D_SCALE", "PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset",
            "mip_overrides"]
 
@@ -63,7 +65,7 @@ class Preset:
     # Mip-Splatting: the renderer's mode ("antialiased" = 2D Mip filter), its 2D low-pass in px^2 (3DGS 0.3,
     # Mip-Splatting 0.1) and the 3D filter's variance factor (0: off; the paper's 0.2)
     rasterize_mode: str = "classic"
-    eps2d: float = 0.3
+    eps2d: float = DEFAULT_EPS2D
     filter3d_scale: float = 0.0
     lrs: LearningRates = field(default_factory=LearningRates)
 
@@ -72,11 +74,10 @@ class Preset:
             raise ValueError(f"preset {self.name!r}: iterations must be >= 1, got {self.iterations}")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"preset {self.name!r}: sh_degree must be 0..3, got {self.sh_degree}")
-        if self.rasterize_mode not in ("classic", "antialiased"):
-            raise ValueError(f"preset {self.name!r}: rasterize_mode must be 'classic' or 'antialiased', "
-                             f"got {self.rasterize_mode!r}")
-        if not 0 < self.eps2d <= 10:
-            raise ValueError(f"preset {self.name!r}: eps2d must be in (0, 10] px^2, got {self.eps2d}")
+        try:
+            check_splat_options(self.rasterize_mode, self.eps2d)
+        except ValueError as e:
+            raise ValueError(f"preset {self.name!r}: {e}") from None
         if not self.filter3d_scale >= 0:
             raise ValueError(f"preset {self.name!r}: filter3d_scale must be >= 0, got {self.filter3d_scale}")
         for name in ("densify_every", "sh_degree_every", "checkpoint_every", "reg3d_every", "reset_every"):
@@ -158,7 +159,7 @@ def mip_overrides(mip: bool | None) -> dict[str, Any]:
         return {}
     if mip:
         return dict(_MIP)
-    return {"rasterize_mode": "classic", "eps2d": 0.3, "filter3d_scale": 0.0}
+    return {"rasterize_mode": "classic", "eps2d": DEFAULT_EPS2D, "filter3d_scale": 0.0}
 
 
 def get_preset(name: str, **overrides: Any) -> Preset:

@@ -156,6 +156,11 @@ class Trainer:
         self.field.configure_filters(p.rasterize_mode, p.filter3d_scale, (d.viewmats, d.Ks, d.width, d.height),
                                      p.eps2d)
 
+    def refresh_filter3d(self, step: int) -> None:
+        """Mip-Splatting's schedule: the 3D filter follows the means every ``densify_every`` steps."""
+        if self.preset.filter3d_scale > 0 and step % self.preset.densify_every == 0:
+            self.field.update_filter3d()
+
     # ------------------------------------------------------------------ one step
     def _next_view(self) -> int:
         if self.queue.numel() == 0:
@@ -220,8 +225,7 @@ class Trainer:
             self.cls_optimizer.step()
         self.step += 1
         self.strategy.after_backward(self.step, self.field, self.optimizers, out.meta, self.generator)
-        if p.filter3d_scale > 0 and self.step % p.densify_every == 0:
-            self.field.update_filter3d()
+        self.refresh_filter3d(self.step)
         stats["n"] = self.field.num
         return stats
 

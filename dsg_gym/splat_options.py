@@ -1,0 +1,25 @@
+"""The renderer options a world is trained and rendered with (torch-free, so the world reader can use it).
+
+``rasterize_mode``: "classic" (3DGS) or "antialiased" (Mip-Splatting's 2D Mip filter, gsplat's name);
+``eps2d``: the low-pass in px^2 added to each projected 2D covariance (3DGS and gsplat: 0.3). See
+:func:`dsg_gym.splat.rasterize`.
+"""
+
+from __future__ import annotations
+
+import math
+
+__all__ = ["DEFAULT_EPS2D", "RASTERIZE_MODES", "check_splat_options"]
+
+RASTERIZE_MODES = ("classic", "antialiased")
+DEFAULT_EPS2D = 0.3
+
+
+def check_splat_options(rasterize_mode, eps2d) -> tuple[str, float]:
+    """``(rasterize_mode, float(eps2d))``; ValueError naming the bad one."""
+    if rasterize_mode not in RASTERIZE_MODES:
+        raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+    if isinstance(eps2d, bool) or not isinstance(eps2d, (int, float)) or not (math.isfinite(eps2d)
+                                                                                and 0 < eps2d <= 10):
+        raise ValueError(f"eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
+    return str(rasterize_mode), float(eps2d)

@@ -42,3 +42,14 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
     assert suite_main(["--out", str(out), "--scenes", "two_blocks", "--methods", "a,b,BC,BCP", "--preset",
                        "quick", "--iterations", "40"]) == 0
     assert {m: (wdir / f"{m}.dsgw").stat().st_mtime_ns for m in runs} == before
+    # a training killed after its last checkpoint continues from it: nothing is retrained, same world
+    for m in ("a", "BCP"):
+        assert (wdir / f"{m}.dsgw.ckpt").is_file()
+        data = (wdir / f"{m}.dsgw").read_bytes()
+        trained = json.loads((wdir / f"{m}.json").read_text())["train_seconds"]
+        (wdir / f"{m}.dsgw").unlink()
+        (wdir / f"{m}.json").unlink()
+        assert suite_main(["--out", str(out), "--scenes", "two_blocks", "--methods", m, "--preset", "quick",
+                           "--iterations", "40", "--max-gaussians", "4000", "--mip"]) == 0
+        assert (wdir / f"{m}.dsgw").read_bytes() == data, m
+        assert json.loads((wdir / f"{m}.json").read_text())["train_seconds"] == trained, m

@@ -35,10 +35,13 @@ def train_single_state(
     progress: bool = False,
     max_gaussians: int | None = None,
     mip: bool | None = None,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
 ) -> dict:
     """Baseline (a): train one field on ``state`` (schedule scaled to ``iterations`` as in the two-state
     CLI; ``mip`` as ``dsg-train --mip/--no-mip``) and write its world to ``out``; returns ``{"world",
-    "train_seconds", "gaussians"}``."""
+    "train_seconds", "gaussians"}``. ``checkpoint``: where checkpoints go (None: none); ``resume``: continue
+    from it when it exists (a killed run; ``train_seconds`` counts every part)."""
     from train_world.dual.cli import scaled_preset
     from train_world.recon.data import load_training_data
     from train_world.recon.presets import TrainConfig, mip_overrides
@@ -46,7 +49,9 @@ def train_single_state(
 
     p = dataclasses.replace(scaled_preset(preset, iterations, max_gaussians), **mip_overrides(mip))
     cfg = TrainConfig(preset=p, seed=seed, state=state)
-    tr = Trainer(load_training_data(capture, cfg), cfg)
+    tr = Trainer(load_training_data(capture, cfg), cfg, checkpoint=checkpoint)
+    if resume and checkpoint is not None and Path(checkpoint).exists():
+        tr.load_checkpoint()
     tr.train(progress=progress)
     tr.write_world(out, {"baseline": "a: single-state segmentation"})
     return {"world": str(out), "train_seconds": round(tr.elapsed, 1), "gaussians": tr.field.num}
@@ -163,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--iterations", type=int)
     a.add_argument("--seed", type=int, default=0)
     a.add_argument("--max-gaussians", type=int, help="cap on the field's Gaussian count (default: preset's)")
+    a.add_argument("--checkpoint", type=Path, help="checkpoint file (default: none)")
+    a.add_argument("--resume", action="store_true", help="continue from --checkpoint if it exists")
     a.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
                    help="Mip-Splatting filters, as dsg-train --mip (default: the preset's)")
     b = sub.add_parser("knn", help="baseline (b): kNN background completion of a single-state world")
@@ -181,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
                 seed=args.seed,
                 max_gaussians=args.max_gaussians,
                 mip=args.mip,
+                checkpoint=args.checkpoint,
+                resume=args.resume,
             )
         else:
             from dsg_gym.world import load_world

@@ -3,7 +3,9 @@
 For every scene: generate the capture (``dsg-synth``, skipped when present), train baseline (a) (one field
 on ``state1``, segmentation only), derive (b) (a + kNN background completion) and train DSG-World with the
 ablations B, B+C and B+C+P (``dsg-train`` on both states); each training runs in its own process (wall time
-and peak RSS recorded) and is skipped when its world file exists, so an interrupted suite resumes. Every
+and peak RSS recorded) and is skipped when its world file exists; a training that was killed continues from its
+checkpoint (``WORLD.ckpt``; its ``train_seconds`` count every part, its ``wall_seconds`` the last), so an
+interrupted suite resumes. Every
 world is evaluated with ``dsg-eval`` on every test state of the capture (objects at the test poses, held-out
 cameras); a method's figure per scene is the mean over its test states.
 
@@ -151,9 +153,10 @@ def run_suite(
             it += ["--max-gaussians", str(max_gaussians)]
         if mip is not None:
             it += ["--mip" if mip else "--no-mip"]
-        single = [py, "-m", "train_world.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed), *it]
+        single = [py, "-m", "train_world.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed),
+                  "--resume", *it]
         dual = [py, "-m", "train_world.dual.cli", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
-                "--pseudo-every", str(pseudo_every), *it]
+                "--pseudo-every", str(pseudo_every), "--resume", *it]
         recon_ckpt, recon_info = wdir / "recon.ckpt", wdir / "recon.json"
         runs: dict[str, Any] = {}
         for m in methods:
@@ -161,11 +164,12 @@ def run_suite(
             info_path = wdir / f"{m}.json"
             if not world.is_file():
                 if m == "a":
-                    cmd = [*single, "--out", str(world)]
+                    cmd = [*single, "--out", str(world), "--checkpoint", str(wdir / "a.dsgw.ckpt")]
                 elif m == "b":
                     a_world = wdir / "a.dsgw"
                     if not a_world.is_file():
-                        _run_json([*single, "--out", str(a_world)], logs / "a.log")
+                        _run_json([*single, "--out", str(a_world), "--checkpoint", str(wdir / "a.dsgw.ckpt")],
+                                  logs / "a.log")
                     cmd = [py, "-m", "train_world.baselines", "knn", str(a_world), "--out", str(world)]
                 else:
                     # the ablations share one reconstruction phase (identical in all of them), then branch

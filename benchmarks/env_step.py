@@ -18,6 +18,7 @@ import time
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import gymnasium as gym  # noqa: E402
+import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 import dsg_gym  # noqa: E402,F401  registers DSGWorld-v0
@@ -158,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
             "met_ratio": None if ratio is None else ratio >= TARGET_RATIO,
         },
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        # the runtime's kernels run on numba's own choice of layer (dsg_gym.splat.threads)
+        "numba": {"threading_layer": numba.threading_layer(), "threads": numba.get_num_threads()},
     }
     with open(args.out, "w") as f:
         json.dump(result, f, indent=2)

@@ -24,6 +24,7 @@ from .gaussians import GaussianSet
 from .splat import _numba_incremental as I
 from .splat import _numba_project as P
 from .splat import _numba_raster as R
+from .splat.threads import parallel_allowed
 from .splat_options import DEFAULT_EPS2D, check_splat_options
 
 
@@ -76,21 +77,21 @@ class _Projected:
 
 
 def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-             alpha_min: float = R.ALPHA_MIN, eps2d: float = P.BLUR) -> _Projected:
+             alpha_min: float = R.ALPHA_MIN, eps2d: float = P.BLUR, parallel: bool = True) -> _Projected:
     V, n = viewmats.shape[0], means.shape[0]
     out = _Projected(np.empty((V, n, 2), np.float32), np.empty((V, n, 3), np.float32),
                      np.empty((V, n), np.float32), np.empty((V, n, 2), np.int32), np.empty((V, n, 4), np.int32))
-    kernel = P.project_forward if V * n > 20_000 else P.project_forward_serial
+    kernel = P.project_forward if parallel and V * n > 20_000 else P.project_forward_serial
     kernel(means, quats, scales, opacities[None], viewmats, Ks, float(width), float(height),
            float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects, float(alpha_min),
            float(eps2d))
     return out
 
 
-def _antialias(conics: np.ndarray, opacities: np.ndarray, eps2d: float) -> np.ndarray:
+def _antialias(conics: np.ndarray, opacities: np.ndarray, eps2d: float, parallel: bool = True) -> np.ndarray:
     """Per-camera opacities ``[V, n]`` after the Mip filter (one kernel for every renderer)."""
     out = np.empty(conics.shape[:2], np.float32)
-    kernel = P.antialias_opacities if out.size > 20_000 else P.antialias_opacities_serial
+    kernel = P.antialias_opacities if parallel and out.size > 20_000 else P.antialias_opacities_serial
     kernel(conics, opacities, out, float(eps2d))
     return out
 
@@ -136,6 +137,9 @@ class SceneRenderer:
         rasterize_mode: "classic" or "antialiased" (the Mip filter of :func:`dsg_gym.splat.rasterize`),
             eps2d: the 2D low-pass in px^2; a world must be rendered with the options it was trained with
             (``World.splat_options``).
+        parallel: run the kernels on numba's threads (``None``: in a main process but not in one started
+            by ``multiprocessing``, e.g. a vector-env worker; see :mod:`dsg_gym.splat.threads`). The
+            images are the same either way.
 
     Raising ``alpha_min``/``t_min`` or lowering ``sh_degree`` trades accuracy for speed
     (``benchmarks/pareto.py`` measures the trade).
@@ -144,8 +148,12 @@ class SceneRenderer:
     def __init__(self, background: GaussianSet, objects: Sequence[GaussianSet], viewmats, Ks, width: int,
                  height: int, background_color=(0.0, 0.0, 0.0), near_plane: float = 0.01,
                  far_plane: float = 1e10, alpha_min: float = R.ALPHA_MIN, t_min: float = R.T_MIN,
-                 sh_degree: int | None = None, rasterize_mode: str = "classic", eps2d: float = DEFAULT_EPS2D):
+                 sh_degree: int | None = None, rasterize_mode: str = "classic", eps2d: float = DEFAULT_EPS2D,
+                 parallel: bool | None = None):
         self.rasterize_mode, self.eps2d = check_splat_options(rasterize_mode, eps2d)
+        if parallel not in (None, True, False):
+            raise ValueError(f"parallel must be None, True or False, got {parallel!r}")
+        self.parallel = parallel
         self._consts = R.make_consts(np.float32, alpha_min, t_min)
         self.alpha_min, self.t_min = float(alpha_min), float(t_min)
         self.background = background
@@ -197,14 +205,15 @@ class SceneRenderer:
         self.tiles_y = (self.height + R.TILE - 1) // R.TILE
         self._campos = np.stack([-(V[:3, :3].T @ V[:3, 3]) for V in self.viewmats])
         bg = self.background
+        par = parallel_allowed(self.parallel)
         self._bg = _project(np.ascontiguousarray(bg.means, np.float32), np.ascontiguousarray(bg.quats, np.float32),
                             np.ascontiguousarray(bg.scales, np.float32), np.ascontiguousarray(bg.opacities, np.float32),
                             self.viewmats, self.Ks, self.width, self.height, self.near, self.far,
-                            self.alpha_min, self.eps2d)
+                            self.alpha_min, self.eps2d, par)
         self._bg_bins = _bins(self._bg, self.tiles_x, self.tiles_y)
         self._bg_opac = np.ascontiguousarray(bg.opacities, np.float32)[None]  # [1 or V, n]
         if self.rasterize_mode == "antialiased":
-            self._bg_opac = _antialias(self._bg.conics, self._bg_opac, self.eps2d)
+            self._bg_opac = _antialias(self._bg.conics, self._bg_opac, self.eps2d, par)
         self._bg_rgb = np.empty((self.V, bg.num, 3), np.float32)
         sh = np.zeros((bg.num, (self._sh_degree + 1) ** 2, 3), np.float32)
         m = min(sh.shape[1], bg.sh.shape[1])
@@ -231,7 +240,7 @@ class SceneRenderer:
             I.fill_colors(rgb_vals[v], labels, depths[v], layout[1], layout[2], layout[3], col[v])
         return col
 
-    def _update_objects(self, st, poses, moved, layout, dirty) -> None:
+    def _update_objects(self, st, poses, moved, layout, dirty, par: bool) -> None:
         """Re-pose, re-project and re-colour the moved objects; mark their old and new tiles."""
         q_all, R_all, t_all = poses
         for k in moved:
@@ -246,11 +255,11 @@ class SceneRenderer:
                               st["quats"][s:e])
             pr = _project(st["means"][s:e], st["quats"][s:e], self._obj_scales[s:e], self._obj_opac[s:e],
                           self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min,
-                          self.eps2d)
+                          self.eps2d, par)
             for f in ("means2d", "conics", "depths", "radii", "rects"):
                 getattr(st["proj"], f)[:, s:e] = getattr(pr, f)
             if self.rasterize_mode == "antialiased":
-                st["opac"][:, s:e] = _antialias(pr.conics, self._obj_opac[None, s:e], self.eps2d)
+                st["opac"][:, s:e] = _antialias(pr.conics, self._obj_opac[None, s:e], self.eps2d, par)
             rgb = self._rgb_scratch[:e - s]
             for v in range(self.V):
                 if layout[1] >= 0:
@@ -268,6 +277,8 @@ class SceneRenderer:
         is renormalised) or ``[K, 4, 4]`` object-to-world rigid transforms (the rotation is re-orthonormalised)."""
         poses = _rigid(poses, self.K)
         layout = self._channels(rgb, mask, depth)
+        par = parallel_allowed(self.parallel)
+        composite = I.composite_merged if par else I.composite_merged_serial
         st = self._state
         full = st is None or st["layout"] != layout or not incremental
         if full:
@@ -285,8 +296,13 @@ class SceneRenderer:
                   "T": np.ones((self.V, self.height, self.width), np.float32),
                   # per object: the tiles its Gaussians' rectangles touch at its current pose
                   "tile_masks": np.zeros((self.K, self.V, self.tiles_x * self.tiles_y), np.bool_)}
-            st["bg_colors"] = self._colors(layout, self._bg_rgb, np.zeros(self.background.num, np.int64),
-                                           self._bg.depths)
+            # the background's tile lists as records with this layout's channels (composited front to back)
+            bg_colors = self._colors(layout, self._bg_rgb, np.zeros(self.background.num, np.int64), self._bg.depths)
+            a, (off, gauss) = self._bg, self._bg_bins
+            st["bg_rec"] = np.empty((gauss.size, 8 + bg_colors.shape[2]), np.float32)
+            st["bg_rect"] = np.empty((gauss.size, 4), np.int32)
+            I.pack_lists(a.means2d, a.conics, self._bg_opac, bg_colors, a.rects, a.depths, off, gauss, self.tiles_x,
+                         self.tiles_y, st["bg_rec"], st["bg_rect"])
             moved = list(range(self.K))
             dirty = None
         else:
@@ -294,15 +310,16 @@ class SceneRenderer:
             moved = [k for k in range(self.K)
                      if not (np.array_equal(poses[0][k], old_q[k]) and np.array_equal(poses[2][k], old_t[k]))]
             dirty = np.zeros((self.V, self.tiles_x * self.tiles_y), np.bool_)
-        self._update_objects(st, poses, moved, layout, dirty)
+        self._update_objects(st, poses, moved, layout, dirty, par)
         st["poses"] = poses
         if full:
             tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
         else:
             tiles = np.flatnonzero(dirty.reshape(-1)).astype(np.int64)
-        tiles = tiles[R.balanced_order(tiles.size)]
+        if par:
+            tiles = tiles[R.balanced_order(tiles.size)]
         if incremental and "bg_out" not in st:
-            self._background_cache(st)
+            self._background_cache(st, composite)
         if tiles.size:
             if dirty is None:
                 b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
@@ -310,29 +327,27 @@ class SceneRenderer:
                 active = (st["tile_masks"] & dirty).reshape(self.K, -1).any(axis=1)
                 b_off, b_gauss = I.bin_tiles(st["proj"].depths.view(np.uint32), st["proj"].rects, dirty,
                                              self.tiles_x, self.tiles_y, self._slices, active)
-            a, b = self._bg, st["proj"]
-            args = (tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths, self._bg_bins[0],
-                    self._bg_bins[1], b.means2d, b.conics, st["opac"], st["colors"], b.rects, b.depths, b_off,
-                    b_gauss, self.tiles_x, self.tiles_y, self.width, self.height, self._consts)
+            b = st["proj"]
             # incremental: pixels that no object reaches come from the background-only render
             cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
-            I.composite_merged(*args, bool(incremental), *cache, st["out"], st["T"])
+            composite(tiles, st["bg_rec"], st["bg_rect"], self._bg_bins[0], b.means2d, b.conics, st["opac"],
+                      st["colors"], b.rects, b.depths, b_off, b_gauss, self.tiles_x, self.tiles_y, self.width,
+                      self.height, self._consts, bool(incremental), *cache, st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
         return self._outputs(st, layout, tiles)
 
-    def _background_cache(self, st) -> None:
+    def _background_cache(self, st, composite) -> None:
         """Render the background alone (every tile) into ``st["bg_out"]``, ``st["bg_T"]``."""
         tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
         tiles = tiles[R.balanced_order(tiles.size)]
         st["bg_out"] = np.zeros_like(st["out"])
         st["bg_T"] = np.ones_like(st["T"])
-        a, b = self._bg, st["proj"]
+        b = st["proj"]
         none = np.zeros(tiles.size + 1, np.int64)
-        I.composite_merged(tiles, a.means2d, a.conics, self._bg_opac, st["bg_colors"], a.rects, a.depths,
-                           self._bg_bins[0], self._bg_bins[1], b.means2d, b.conics, st["opac"], st["colors"],
-                           b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width, self.height,
-                           self._consts, False, st["bg_out"], st["bg_T"], st["bg_out"], st["bg_T"])
+        composite(tiles, st["bg_rec"], st["bg_rect"], self._bg_bins[0], b.means2d, b.conics, st["opac"],
+                  st["colors"], b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width,
+                  self.height, self._consts, False, st["bg_out"], st["bg_T"], st["bg_out"], st["bg_T"])
 
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:
         """The raw accumulators of the last render: colours [V,H,W,D] (no background) and T [V,H,W]."""

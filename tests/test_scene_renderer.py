@@ -48,7 +48,8 @@ def _compose_and_rasterize(sr, bg, vm, K, W, H, mode="classic", eps2d=0.3):
     quats = np.concatenate([bg.quats, st["quats"]])
     scales = np.concatenate([bg.scales, sr._obj_scales])
     op = np.concatenate([bg.opacities, sr._obj_opac])
-    cols = np.concatenate([st["bg_colors"], st["colors"]], axis=1)
+    bg_colors = sr._colors(st["layout"], sr._bg_rgb, np.zeros(bg.num, np.int64), sr._bg.depths)
+    cols = np.concatenate([bg_colors, st["colors"]], axis=1)
     out, alpha, _ = rasterize(t(means), t(quats), t(scales), t(op), t(cols), t(vm.astype(np.float32)),
                               t(K.astype(np.float32)), W, H, rasterize_mode=mode, eps2d=eps2d)
     return out.numpy(), alpha[..., 0].numpy()

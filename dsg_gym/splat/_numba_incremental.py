@@ -58,14 +58,81 @@ def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off
     return n
 
 
+@nb.njit(cache=True)
+def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, rec, rec_rect):
+    """Gather a Gaussian set's per-tile lists into records in list order, so that compositing a tile reads
+    its Gaussians' data front to back from consecutive memory instead of gathering by index.
+
+    Inputs as ``composite_merged``'s ``b`` set (means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors
+    [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and indices). Writes rec [E, 8 + D]
+    float32 (u, v, conic a, b, c, opacity, depth, 0, colour channels) and rec_rect [E, 4] int32 for the E
+    list entries.
+    """
+    T = tiles_x * tiles_y
+    D = col.shape[2]
+    for ct in range(off.shape[0] - 1):
+        c = ct // T
+        co = 0 if op.shape[0] == 1 else c
+        for s in range(off[ct], off[ct + 1]):
+            g = gauss[s]
+            rec[s, 0] = m2[c, g, 0]
+            rec[s, 1] = m2[c, g, 1]
+            rec[s, 2] = cn[c, g, 0]
+            rec[s, 3] = cn[c, g, 1]
+            rec[s, 4] = cn[c, g, 2]
+            rec[s, 5] = op[co, g]
+            rec[s, 6] = depth[c, g]
+            rec[s, 7] = 0.0
+            for d in range(D):
+                rec[s, 8 + d] = col[c, g, d]
+            for j in range(4):
+                rec_rect[s, j] = rect[c, g, j]
+
+
+@nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _composite_tile(ct, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                    tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
+    T = tiles_x * tiles_y
+    D = out_colors.shape[3]
+    amin = consts[1]
+    c = ct // T
+    px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
+        ct - c * T, tiles_x, width, height, D, out_colors.dtype)
+    npix = pw * ph
+    cb = 0 if b_op.shape[0] == 1 else c
+    ndone = 0
+    if use_cache:
+        ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, amin,
+                                bg_colors, bg_T, acc, trans, done, row_done)
+    i = a_off[ct]
+    ie = a_off[ct + 1]
+    j = b_off[ct]
+    je = b_off[ct + 1]
+    while (i < ie or j < je) and ndone < npix:
+        if j >= je or (i < ie and a_rec[i, 6] <= b_depth[c, b_gauss[j]]):
+            f = a_rec[i]
+            r = a_rect[i]
+            i += 1
+            ndone += splat_forward(consts, f[0], f[1], f[2], f[3], f[4], f[5], r[0], r[1], r[2], r[3], f[8:],
+                                   px0, py0, pw, ph, xc, yc, acc, trans, done, row_done)
+        else:
+            g = b_gauss[j]
+            j += 1
+            ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
+                                   b_cn[c, g, 2], b_op[cb, g], b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2],
+                                   b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
+                                   row_done)
+    store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def composite_merged(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_gauss,
-                     b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+def composite_merged(tiles, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
                      tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
     """Recomposite the listed tiles (``tiles`` [M] of ``c * T + t``) into out_colors/out_T.
 
-    Per set: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in {1, C}), colors [C,N,D], rects [C,N,4],
-    depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
+    Background ``a``: its tile lists as records (:func:`pack_lists`: a_rec [E, 8 + D], a_rect [E, 4]) and
+    CSR offsets a_off [C*T+1]. Objects ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in
+    {1, C}), colors [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
 
     ``use_cache``: reuse a background-only render (bg_colors [C,H,W,D], bg_T [C,H,W]; ignored
     otherwise). A pixel that no object Gaussian's footprint reaches (the row spans where its alpha
@@ -73,42 +140,19 @@ def composite_merged(tiles, a_m2, a_cn, a_op, a_col, a_rect, a_depth, a_off, a_g
     background-only sequence of blends, so its accumulators are copied from the cache and marked
     finished; only object-covered pixels are composited. The result is the same bit for bit.
     """
-    T = tiles_x * tiles_y
-    D = out_colors.shape[3]
-    amin = consts[1]
     for m in nb.prange(tiles.shape[0]):
-        ct = tiles[m]
-        c = ct // T
-        px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
-            ct - c * T, tiles_x, width, height, D, out_colors.dtype)
-        npix = pw * ph
-        ca = 0 if a_op.shape[0] == 1 else c
-        cb = 0 if b_op.shape[0] == 1 else c
-        ndone = 0
-        if use_cache:
-            ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, amin,
-                                    bg_colors, bg_T, acc, trans, done, row_done)
-        i = a_off[ct]
-        ie = a_off[ct + 1]
-        j = b_off[ct]
-        je = b_off[ct + 1]
-        while (i < ie or j < je) and ndone < npix:
-            take_a = j >= je or (i < ie and a_depth[c, a_gauss[i]] <= b_depth[c, b_gauss[j]])
-            if take_a:
-                g = a_gauss[i]
-                i += 1
-                ndone += splat_forward(consts, a_m2[c, g, 0], a_m2[c, g, 1], a_cn[c, g, 0], a_cn[c, g, 1],
-                                       a_cn[c, g, 2], a_op[ca, g], a_rect[c, g, 0], a_rect[c, g, 1], a_rect[c, g, 2],
-                                       a_rect[c, g, 3], a_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
-                                       row_done)
-            else:
-                g = b_gauss[j]
-                j += 1
-                ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
-                                       b_cn[c, g, 2], b_op[cb, g], b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2],
-                                       b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
-                                       row_done)
-        store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
+        _composite_tile(tiles[m], a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                        tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T)
+
+
+@nb.njit(cache=True, fastmath=_FASTMATH)
+def composite_merged_serial(tiles, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                            b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
+                            out_colors, out_T):
+    """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`)."""
+    for m in range(tiles.shape[0]):
+        _composite_tile(tiles[m], a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                        tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T)
 
 
 @nb.njit(cache=True)

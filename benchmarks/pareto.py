@@ -32,7 +32,9 @@ from __future__ import annotations
 
 import os
 
-# the env's runtime threading layer (dsg_gym.splat); train_world would pick OpenMP for training
+# numba's workqueue layer, on which the published front was measured (the runtime now takes numba's own
+# choice, OpenMP on the 2-core machine, with about 1.6x faster steps; the front compares settings on one
+# layer); train_world would pick OpenMP for training
 _LAYER_SET_HERE = "NUMBA_THREADING_LAYER" not in os.environ
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 os.environ.setdefault("MUJOCO_GL", "egl")

@@ -18,13 +18,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from .gaussians import GaussianSet
 from .splat import _numba_incremental as I
 from .splat import _numba_project as P
 from .splat import _numba_raster as R
-from .splat.threads import parallel_allowed
+from .splat.threads import min_parallel_work, parallel_allowed
 from .splat_options import DEFAULT_EPS2D, check_splat_options
 
 
@@ -81,7 +82,7 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near,
     V, n = viewmats.shape[0], means.shape[0]
     out = _Projected(np.empty((V, n, 2), np.float32), np.empty((V, n, 3), np.float32),
                      np.empty((V, n), np.float32), np.empty((V, n, 2), np.int32), np.empty((V, n, 4), np.int32))
-    kernel = P.project_forward if parallel and V * n > 20_000 else P.project_forward_serial
+    kernel = P.project_forward if parallel and V * n > min_parallel_work() else P.project_forward_serial
     kernel(means, quats, scales, opacities[None], viewmats, Ks, float(width), float(height),
            float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects, float(alpha_min),
            float(eps2d))
@@ -91,7 +92,7 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near,
 def _antialias(conics: np.ndarray, opacities: np.ndarray, eps2d: float, parallel: bool = True) -> np.ndarray:
     """Per-camera opacities ``[V, n]`` after the Mip filter (one kernel for every renderer)."""
     out = np.empty(conics.shape[:2], np.float32)
-    kernel = P.antialias_opacities if parallel and out.size > 20_000 else P.antialias_opacities_serial
+    kernel = P.antialias_opacities if parallel and out.size > min_parallel_work() else P.antialias_opacities_serial
     kernel(conics, opacities, out, float(eps2d))
     return out
 
@@ -316,10 +317,8 @@ class SceneRenderer:
             tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
         else:
             tiles = np.flatnonzero(dirty.reshape(-1)).astype(np.int64)
-        if par:
-            tiles = tiles[R.balanced_order(tiles.size)]
         if incremental and "bg_out" not in st:
-            self._background_cache(st, composite)
+            self._background_cache(st, composite, par)
         if tiles.size:
             if dirty is None:
                 b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
@@ -330,22 +329,23 @@ class SceneRenderer:
             b = st["proj"]
             # incremental: pixels that no object reaches come from the background-only render
             cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
-            composite(tiles, st["bg_rec"], st["bg_rect"], self._bg_bins[0], b.means2d, b.conics, st["opac"],
+            plan = I.plan_tiles(tiles, self._bg_bins[0], b_off, bool(incremental), nb.get_num_threads() if par else 1)
+            composite(*plan, st["bg_rec"], st["bg_rect"], self._bg_bins[0], b.means2d, b.conics, st["opac"],
                       st["colors"], b.rects, b.depths, b_off, b_gauss, self.tiles_x, self.tiles_y, self.width,
                       self.height, self._consts, bool(incremental), *cache, st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
         return self._outputs(st, layout, tiles)
 
-    def _background_cache(self, st, composite) -> None:
+    def _background_cache(self, st, composite, par: bool) -> None:
         """Render the background alone (every tile) into ``st["bg_out"]``, ``st["bg_T"]``."""
         tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
-        tiles = tiles[R.balanced_order(tiles.size)]
         st["bg_out"] = np.zeros_like(st["out"])
         st["bg_T"] = np.ones_like(st["T"])
         b = st["proj"]
         none = np.zeros(tiles.size + 1, np.int64)
-        composite(tiles, st["bg_rec"], st["bg_rect"], self._bg_bins[0], b.means2d, b.conics, st["opac"],
+        plan = I.plan_tiles(tiles, self._bg_bins[0], none, False, nb.get_num_threads() if par else 1)
+        composite(*plan, st["bg_rec"], st["bg_rect"], self._bg_bins[0], b.means2d, b.conics, st["opac"],
                   st["colors"], b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width,
                   self.height, self._consts, False, st["bg_out"], st["bg_T"], st["bg_out"], st["bg_T"])
 

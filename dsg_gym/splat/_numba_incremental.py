@@ -125,10 +125,46 @@ def _composite_tile(ct, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b
     store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
 
 
+@nb.njit(cache=True)
+def plan_tiles(tiles, a_off, b_off, use_cache, nthreads):
+    """Split the tiles to recomposite among ``nthreads`` threads (longest first, each to the least loaded
+    thread). A tile's estimated cost is its object-list length plus, without the background cache, its
+    background-list length (with the cache only object-covered pixels blend the background: a constant).
+    Returns ``order`` [M] (the tiles, thread by thread) and ``starts`` [nthreads + 1]."""
+    M = tiles.shape[0]
+    P = max(1, min(nthreads, M))
+    cost = np.empty(M, np.int64)
+    for m in range(M):
+        ct = tiles[m]
+        cost[m] = b_off[ct + 1] - b_off[ct] + (40 if use_cache else a_off[ct + 1] - a_off[ct])
+    rank = np.argsort(-cost, kind="mergesort")
+    owner = np.empty(M, np.int64)
+    load = np.zeros(P, np.int64)
+    count = np.zeros(P + 1, np.int64)
+    for r in range(M):
+        m = rank[r]
+        t = 0
+        for q in range(1, P):
+            if load[q] < load[t]:
+                t = q
+        owner[m] = t
+        load[t] += cost[m]
+        count[t + 1] += 1
+    starts = np.cumsum(count)
+    fill = starts[:-1].copy()
+    order = np.empty(M, np.int64)
+    for r in range(M):
+        m = rank[r]
+        order[fill[owner[m]]] = tiles[m]
+        fill[owner[m]] += 1
+    return order, starts
+
+
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def composite_merged(tiles, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+def composite_merged(order, starts, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
                      tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
-    """Recomposite the listed tiles (``tiles`` [M] of ``c * T + t``) into out_colors/out_T.
+    """Recomposite tiles (each ``c * T + t``) into out_colors/out_T; thread ``k`` takes
+    ``order[starts[k]:starts[k + 1]]`` (:func:`plan_tiles`).
 
     Background ``a``: its tile lists as records (:func:`pack_lists`: a_rec [E, 8 + D], a_rect [E, 4]) and
     CSR offsets a_off [C*T+1]. Objects ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in
@@ -140,18 +176,20 @@ def composite_merged(tiles, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rec
     background-only sequence of blends, so its accumulators are copied from the cache and marked
     finished; only object-covered pixels are composited. The result is the same bit for bit.
     """
-    for m in nb.prange(tiles.shape[0]):
-        _composite_tile(tiles[m], a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                        tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T)
+    for k in nb.prange(starts.shape[0] - 1):
+        for m in range(starts[k], starts[k + 1]):
+            _composite_tile(order[m], a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                            b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
+                            out_colors, out_T)
 
 
 @nb.njit(cache=True, fastmath=_FASTMATH)
-def composite_merged_serial(tiles, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+def composite_merged_serial(order, starts, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
                             b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
                             out_colors, out_T):
     """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`)."""
-    for m in range(tiles.shape[0]):
-        _composite_tile(tiles[m], a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+    for m in range(starts[0], starts[-1]):
+        _composite_tile(order[m], a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
                         tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T)
 
 

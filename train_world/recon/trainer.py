@@ -254,11 +254,12 @@ class Trainer:
                     self.step % p.checkpoint_every == 0 or self.step == p.iterations
                 ):
                     self.elapsed += time.perf_counter() - t0
+                    self.save_checkpoint()  # its write is not training time
                     t0 = time.perf_counter()
-                    self.save_checkpoint()
         finally:
             bar.close()
-            self.elapsed += time.perf_counter() - t0
+            if self.step != self.last_checkpoint_step:  # ending on a checkpoint: its time is the run's
+                self.elapsed += time.perf_counter() - t0
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path: str | Path | None = None) -> None:

@@ -222,6 +222,7 @@ class SceneRenderer:
         for v in range(self.V):
             I.sh_to_rgb(bg.means, np.eye(3), self._campos[v], sh, self._sh_degree, self._bg_rgb[v])
         self._state = None  # (channels key, poses, object arrays, buffers)
+        self._bg_lists = {}  # layout -> the background's packed tile lists
 
     # ----------------------------------------------------------------------------------------
     def _channels(self, rgb: bool, mask: bool, depth: bool) -> tuple[int, int, int, int]:
@@ -297,13 +298,7 @@ class SceneRenderer:
                   "T": np.ones((self.V, self.height, self.width), np.float32),
                   # per object: the tiles its Gaussians' rectangles touch at its current pose
                   "tile_masks": np.zeros((self.K, self.V, self.tiles_x * self.tiles_y), np.bool_)}
-            # the background's tile lists as records with this layout's channels (composited front to back)
-            bg_colors = self._colors(layout, self._bg_rgb, np.zeros(self.background.num, np.int64), self._bg.depths)
-            a, (off, gauss) = self._bg, self._bg_bins
-            st["bg_rec"] = np.empty((gauss.size, 8 + bg_colors.shape[2]), np.float32)
-            st["bg_rect"] = np.empty((gauss.size, 4), np.int32)
-            I.pack_lists(a.means2d, a.conics, self._bg_opac, bg_colors, a.rects, a.depths, off, gauss, self.tiles_x,
-                         self.tiles_y, st["bg_rec"], st["bg_rect"])
+            st["bg_rec"], st["bg_rect"], st["bg_rows"] = self._background_lists(layout)
             moved = list(range(self.K))
             dirty = None
         else:
@@ -330,12 +325,26 @@ class SceneRenderer:
             # incremental: pixels that no object reaches come from the background-only render
             cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
             plan = I.plan_tiles(tiles, self._bg_bins[0], b_off, bool(incremental), nb.get_num_threads() if par else 1)
-            composite(*plan, st["bg_rec"], st["bg_rect"], self._bg_bins[0], b.means2d, b.conics, st["opac"],
-                      st["colors"], b.rects, b.depths, b_off, b_gauss, self.tiles_x, self.tiles_y, self.width,
+            composite(*plan, st["bg_rec"], st["bg_rect"], st["bg_rows"], self._bg_bins[0], b.means2d, b.conics,
+                      st["opac"], st["colors"], b.rects, b.depths, b_off, b_gauss, self.tiles_x, self.tiles_y, self.width,
                       self.height, self._consts, bool(incremental), *cache, st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
         return self._outputs(st, layout, tiles)
+
+    def _background_lists(self, layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The background's tile lists as records with ``layout``'s channels, in compositing order
+        (:func:`_numba_incremental.pack_lists`); built once per layout and camera set."""
+        if layout not in self._bg_lists:
+            bg_colors = self._colors(layout, self._bg_rgb, np.zeros(self.background.num, np.int64), self._bg.depths)
+            a, (off, gauss) = self._bg, self._bg_bins
+            rec = np.empty((gauss.size, 8 + bg_colors.shape[2]), np.float32)
+            rect = np.empty((gauss.size, 4), np.int32)
+            rows = np.empty((gauss.size, R.TILE), np.uint16)
+            I.pack_lists(a.means2d, a.conics, self._bg_opac, bg_colors, a.rects, a.depths, off, gauss, self.tiles_x,
+                         self.tiles_y, self.width, self.height, self._consts, rec, rect, rows)
+            self._bg_lists = {layout: (rec, rect, rows)}  # one layout at a time (they are large)
+        return self._bg_lists[layout]
 
     def _background_cache(self, st, composite, par: bool) -> None:
         """Render the background alone (every tile) into ``st["bg_out"]``, ``st["bg_T"]``."""
@@ -345,8 +354,8 @@ class SceneRenderer:
         b = st["proj"]
         none = np.zeros(tiles.size + 1, np.int64)
         plan = I.plan_tiles(tiles, self._bg_bins[0], none, False, nb.get_num_threads() if par else 1)
-        composite(*plan, st["bg_rec"], st["bg_rect"], self._bg_bins[0], b.means2d, b.conics, st["opac"],
-                  st["colors"], b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width,
+        composite(*plan, st["bg_rec"], st["bg_rect"], st["bg_rows"], self._bg_bins[0], b.means2d, b.conics,
+                  st["opac"], st["colors"], b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width,
                   self.height, self._consts, False, st["bg_out"], st["bg_T"], st["bg_out"], st["bg_T"])
 
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:

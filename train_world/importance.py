@@ -98,7 +98,7 @@ def _tile_scores(
             continue
         c = ct // T
         co = 0 if opacities.shape[0] == 1 else c
-        px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = R.tile_state(
+        px0, py0, pw, ph, acc, trans, row_done, xc, yc = R.tile_state(
             ct - c * T, tiles_x, width, height, 3, np.float32
         )
         npix = pw * ph
@@ -128,7 +128,6 @@ def _tile_scores(
                 yc,
                 acc,
                 trans,
-                done,
                 row_done,
             )
         final = np.empty((TILE * TILE, 3), dtype=np.float64)
@@ -137,7 +136,6 @@ def _tile_scores(
                 final[p, d] = np.float64(acc[p, d]) + np.float64(trans[p]) * bg[d]
         # pass 2: the same decisions again, now with the per-Gaussian sums
         trans[:] = one
-        done[:] = False
         row_done[:] = 0
         run = np.zeros((TILE * TILE, 3), dtype=np.float64)
         ndone = 0
@@ -172,15 +170,15 @@ def _tile_scores(
                 )
                 if x1 < x0:
                     continue
-                span_bits = R._bits(x0, x1)
-                if row_done[ly] & span_bits == span_bits:
+                todo = R._bits(x0, x1) & ~row_done[ly]  # unfinished pixels, as splat_forward visits them
+                if todo == 0:
                     continue
                 bdy = cb * dy
                 cdy = cc_ * dy * dy
-                for lx in range(x0, x1 + 1):
+                while todo != 0:
+                    lx = R._lowest_bit(todo)
+                    todo &= todo - 1
                     p = ly * TILE + lx
-                    if done[p]:
-                        continue
                     dx = xc[lx] - u
                     sigma = (ca * dx + bdy) * dx + cdy
                     if sigma < zero or sigma > smax:
@@ -191,7 +189,6 @@ def _tile_scores(
                     tp = trans[p]
                     nt = tp * (one - alpha)
                     if nt < tmin:
-                        done[p] = True
                         row_done[ly] |= np.int64(1) << lx
                         ndone += 1
                         continue

@@ -14,7 +14,8 @@ import math
 import numba as nb
 import numpy as np
 
-from ._numba_raster import _FASTMATH, TILE, _bits, _row_span, depth_order, splat_forward, store_tile, tile_state
+from ._numba_raster import (_FASTMATH, TILE, depth_order, span_rows, splat_forward, splat_rows, store_tile,
+                            tile_state)
 from .sh import C0, C1, C2, C3
 
 _TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS
@@ -22,27 +23,22 @@ assert 1 << _TILE_BITS == TILE
 
 
 @nb.njit(cache=True, inline="always")
-def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, amin,
-                    bg_colors, bg_T, acc, trans, done, row_done):
+def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
+                    bg_colors, bg_T, acc, trans, row_done, b_rows):
     """Fill the tile pixels no object Gaussian can reach from the background-only render and mark them
-    finished; returns how many."""
+    finished; returns how many. Leaves in b_rows [list length, 16] each listed object Gaussian's row spans
+    (:func:`span_rows`), which its compositing reuses."""
     D = acc.shape[1]
     cover = np.zeros(TILE, dtype=np.int64)  # bit lx of row ly: an object may blend into that pixel
-    for s in range(b_off[ct], b_off[ct + 1]):
+    cb = 0 if b_op.shape[0] == 1 else c
+    j0 = b_off[ct]
+    for s in range(j0, b_off[ct + 1]):
         g = b_gauss[s]
-        xr0 = max(b_rect[c, g, 0], px0)
-        xr1 = min(b_rect[c, g, 1], px0 + pw - 1)
-        y0 = max(b_rect[c, g, 2], py0) - py0
-        y1 = min(b_rect[c, g, 3], py0 + ph - 1) - py0
-        if xr1 < xr0:
-            continue
-        logo = math.log(np.float64(b_op[0 if b_op.shape[0] == 1 else c, g]) / np.float64(amin))
-        for ly in range(y0, y1 + 1):
-            dy = yc[ly] - b_m2[c, g, 1]
-            x0, x1 = _row_span(b_cn[c, g, 0], b_cn[c, g, 1], b_cn[c, g, 2], b_m2[c, g, 0], np.float64(dy),
-                               logo, xr0, xr1, px0)
-            if x0 <= x1:
-                cover[ly] |= _bits(x0, x1)
+        rows = b_rows[s - j0]
+        span_rows(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1], b_cn[c, g, 2], b_op[cb, g],
+                  b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2], b_rect[c, g, 3], px0, py0, pw, ph, yc, rows)
+        for ly in range(TILE):
+            cover[ly] |= rows[ly]
     n = 0
     for ly in range(ph):
         for lx in range(pw):
@@ -52,27 +48,29 @@ def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off
             for d in range(D):
                 acc[p, d] = bg_colors[c, py0 + ly, px0 + lx, d]
             trans[p] = bg_T[c, py0 + ly, px0 + lx]
-            done[p] = True
             row_done[ly] |= np.int64(1) << lx
             n += 1
     return n
 
 
 @nb.njit(cache=True)
-def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, rec, rec_rect):
+def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, width, height, consts, rec, rec_rect,
+               rec_rows):
     """Gather a Gaussian set's per-tile lists into records in list order, so that compositing a tile reads
     its Gaussians' data front to back from consecutive memory instead of gathering by index.
 
     Inputs as ``composite_merged``'s ``b`` set (means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors
-    [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and indices). Writes rec [E, 8 + D]
-    float32 (u, v, conic a, b, c, opacity, depth, 0, colour channels) and rec_rect [E, 4] int32 for the E
-    list entries.
+    [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and indices), the image size and the
+    compositing constants. Writes rec [E, 8 + D] float32 (u, v, conic a, b, c, opacity, depth, 0, colour
+    channels), rec_rect [E, 4] int32 and rec_rows [E, 16] uint16 (the entry's row spans in its tile,
+    :func:`span_rows`) for the E list entries.
     """
     T = tiles_x * tiles_y
     D = col.shape[2]
     for ct in range(off.shape[0] - 1):
         c = ct // T
         co = 0 if op.shape[0] == 1 else c
+        px0, py0, pw, ph, _, _, _, _, yc = tile_state(ct - c * T, tiles_x, width, height, 1, rec.dtype)
         for s in range(off[ct], off[ct + 1]):
             g = gauss[s]
             rec[s, 0] = m2[c, g, 0]
@@ -87,41 +85,47 @@ def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, rec, 
                 rec[s, 8 + d] = col[c, g, d]
             for j in range(4):
                 rec_rect[s, j] = rect[c, g, j]
+            span_rows(consts, rec[s, 0], rec[s, 1], rec[s, 2], rec[s, 3], rec[s, 4], rec[s, 5], rect[c, g, 0],
+                      rect[c, g, 1], rect[c, g, 2], rect[c, g, 3], px0, py0, pw, ph, yc, rec_rows[s])
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _composite_tile(ct, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                    tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
+def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                    b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
     T = tiles_x * tiles_y
     D = out_colors.shape[3]
-    amin = consts[1]
     c = ct // T
-    px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
+    px0, py0, pw, ph, acc, trans, row_done, xc, yc = tile_state(
         ct - c * T, tiles_x, width, height, D, out_colors.dtype)
     npix = pw * ph
     cb = 0 if b_op.shape[0] == 1 else c
     ndone = 0
-    if use_cache:
-        ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, amin,
-                                bg_colors, bg_T, acc, trans, done, row_done)
     i = a_off[ct]
     ie = a_off[ct + 1]
-    j = b_off[ct]
+    j0 = j = b_off[ct]
     je = b_off[ct + 1]
+    b_rows = np.empty((je - j0 if use_cache else 0, TILE), np.uint16)
+    if use_cache:
+        ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
+                                bg_colors, bg_T, acc, trans, row_done, b_rows)
     while (i < ie or j < je) and ndone < npix:
         if j >= je or (i < ie and a_rec[i, 6] <= b_depth[c, b_gauss[j]]):
             f = a_rec[i]
-            r = a_rect[i]
+            ndone += splat_rows(consts, f[0], f[1], f[2], f[3], f[4], f[5], a_rect[i, 2], a_rect[i, 3], a_rows[i],
+                                f[8:], py0, ph, xc, yc, acc, trans, row_done)
             i += 1
-            ndone += splat_forward(consts, f[0], f[1], f[2], f[3], f[4], f[5], r[0], r[1], r[2], r[3], f[8:],
-                                   px0, py0, pw, ph, xc, yc, acc, trans, done, row_done)
         else:
             g = b_gauss[j]
+            if use_cache:
+                ndone += splat_rows(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
+                                    b_cn[c, g, 2], b_op[cb, g], b_rect[c, g, 2], b_rect[c, g, 3], b_rows[j - j0],
+                                    b_col[c, g], py0, ph, xc, yc, acc, trans, row_done)
+            else:
+                ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
+                                       b_cn[c, g, 2], b_op[cb, g], b_rect[c, g, 0], b_rect[c, g, 1],
+                                       b_rect[c, g, 2], b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc,
+                                       acc, trans, row_done)
             j += 1
-            ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
-                                   b_cn[c, g, 2], b_op[cb, g], b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2],
-                                   b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc, acc, trans, done,
-                                   row_done)
     store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
 
 
@@ -161,36 +165,39 @@ def plan_tiles(tiles, a_off, b_off, use_cache, nthreads):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def composite_merged(order, starts, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
+def composite_merged(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                     b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,
+                     out_T):
     """Recomposite tiles (each ``c * T + t``) into out_colors/out_T; thread ``k`` takes
     ``order[starts[k]:starts[k + 1]]`` (:func:`plan_tiles`).
 
-    Background ``a``: its tile lists as records (:func:`pack_lists`: a_rec [E, 8 + D], a_rect [E, 4]) and
-    CSR offsets a_off [C*T+1]. Objects ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in
+    Background ``a``: its tile lists as records (:func:`pack_lists`: a_rec [E, 8 + D], a_rect [E, 4], row
+    spans a_rows [E, 16]) and CSR offsets a_off [C*T+1]. Objects ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in
     {1, C}), colors [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
 
     ``use_cache``: reuse a background-only render (bg_colors [C,H,W,D], bg_T [C,H,W]; ignored
     otherwise). A pixel that no object Gaussian's footprint reaches (the row spans where its alpha
     can reach alpha_min, with the 1 px margin of ``_row_span``) receives exactly the
     background-only sequence of blends, so its accumulators are copied from the cache and marked
-    finished; only object-covered pixels are composited. The result is the same bit for bit.
+    finished; only object-covered pixels are composited, and the objects' row spans computed for the
+    cover are reused. The result is the same bit for bit.
     """
     for k in nb.prange(starts.shape[0] - 1):
         for m in range(starts[k], starts[k + 1]):
-            _composite_tile(order[m], a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
-                            b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
+            _composite_tile(order[m], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth,
+                            b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
                             out_colors, out_T)
 
 
 @nb.njit(cache=True, fastmath=_FASTMATH)
-def composite_merged_serial(order, starts, a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
-                            b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
-                            out_colors, out_T):
+def composite_merged_serial(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect,
+                            b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors,
+                            bg_T, out_colors, out_T):
     """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`)."""
     for m in range(starts[0], starts[-1]):
-        _composite_tile(order[m], a_rec, a_rect, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                        tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T)
+        _composite_tile(order[m], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                        b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,
+                        out_T)
 
 
 @nb.njit(cache=True)

@@ -28,6 +28,9 @@ import math
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 TILE = 16
 ALPHA_MIN = 1.0 / 255.0
@@ -208,6 +211,19 @@ def _bits(x0, x1):
     return ((np.int64(1) << (x1 + 1)) - 1) ^ ((np.int64(1) << x0) - 1)
 
 
+@intrinsic
+def _lowest_bit(typingctx, x):
+    """Index of the lowest set bit of the int64 ``x`` (LLVM ``cttz``; ``x`` must not be 0)."""
+    if not isinstance(x, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        v = context.cast(builder, args[0], signature.args[0], types.int64)
+        return builder.cttz(v, ir.Constant(ir.IntType(1), 1))
+
+    return types.int64(x), codegen
+
+
 @nb.njit(cache=True, inline="always")
 def _rows_done(row_done, y0, y1, x0, x1):
     """True when every pixel of columns x0..x1 in rows y0..y1 has finished."""
@@ -219,21 +235,57 @@ def _rows_done(row_done, y0, y1, x0, x1):
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
-def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, col, px0, py0, pw, ph,
-                  xc, yc, acc, trans, done, row_done):
-    """Composite one Gaussian into a tile's accumulators; returns how many pixels it finished.
-
-    The single definition of the per-pixel arithmetic: every forward kernel calls it, so that
-    full and incremental renders agree bit for bit. (rx0, rx1, ry0, ry1) is the Gaussian's
-    absolute pixel rectangle; acc [256, D], trans [256], done [256], row_done [16] the tile state.
-    """
+def _blend_row(consts, todo, ly, dy, u, ca, cb, cc_, o, smax, col, xc, acc, trans, row_done):
+    """Blend one Gaussian into the pixels ``todo`` (bits) of tile row ``ly`` (dy = row centre - v, ca and
+    cc_ the halved conic terms), in increasing x; returns how many pixels it finished. The per-pixel
+    arithmetic of every forward kernel (the backward pass replays it)."""
     amax = consts[0]
     amin = consts[1]
     tmin = consts[2]
-    half = consts[3]
     one = consts[4]
     zero = consts[5]
     D = col.shape[0]
+    finished = 0
+    bdy = cb * dy
+    cdy = cc_ * dy * dy
+    while todo != 0:
+        lx = _lowest_bit(todo)
+        todo &= todo - 1
+        p = ly * TILE + lx
+        dx = xc[lx] - u
+        sigma = (ca * dx + bdy) * dx + cdy
+        if sigma < zero or sigma > smax:
+            continue
+        alpha = min(amax, o * math.exp(-sigma))
+        if alpha < amin:
+            continue
+        tp = trans[p]
+        nt = tp * (one - alpha)
+        if nt < tmin:
+            row_done[ly] |= np.int64(1) << lx
+            finished += 1
+            continue
+        w = alpha * tp
+        for d in range(D):
+            acc[p, d] += w * col[d]
+        trans[p] = nt
+    return finished
+
+
+@nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
+def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, col, px0, py0, pw, ph,
+                  xc, yc, acc, trans, row_done):
+    """Composite one Gaussian into a tile's accumulators; returns how many pixels it finished.
+
+    Every forward kernel calls it (or :func:`splat_rows`, the same with precomputed spans), so that
+    full and incremental renders agree bit for bit. (rx0, rx1, ry0, ry1) is the Gaussian's
+    absolute pixel rectangle; acc [256, D], trans [256], row_done [16] the tile state (bit lx of row
+    ly set: that pixel has finished). A row's unfinished pixels in the span are visited in increasing x
+    (:func:`_blend_row`).
+    """
+    amin = consts[1]
+    half = consts[3]
+    zero = consts[5]
     ca = conic_a * half
     cc_ = conic_c * half
     logo = math.log(np.float64(o) / np.float64(amin))
@@ -254,39 +306,65 @@ def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1
         x0, x1 = _row_span(conic_a, conic_b, conic_c, u, np.float64(dy), logo, xr0, xr1, px0)
         if x1 < x0:
             continue
-        span_bits = _bits(x0, x1)
-        if row_done[ly] & span_bits == span_bits:
-            continue  # every pixel of the span has finished
-        bdy = conic_b * dy
-        cdy = cc_ * dy * dy
-        for lx in range(x0, x1 + 1):
-            p = ly * TILE + lx
-            if done[p]:
-                continue
-            dx = xc[lx] - u
-            sigma = (ca * dx + bdy) * dx + cdy
-            if sigma < zero or sigma > smax:
-                continue
-            alpha = min(amax, o * math.exp(-sigma))
-            if alpha < amin:
-                continue
-            tp = trans[p]
-            nt = tp * (one - alpha)
-            if nt < tmin:
-                done[p] = True
-                row_done[ly] |= np.int64(1) << lx
-                finished += 1
-                continue
-            w = alpha * tp
-            for d in range(D):
-                acc[p, d] += w * col[d]
-            trans[p] = nt
+        todo = _bits(x0, x1) & ~row_done[ly]  # the span's unfinished pixels
+        if todo == 0:
+            continue
+        finished += _blend_row(consts, todo, ly, dy, u, ca, conic_b, cc_, o, smax, col, xc, acc, trans, row_done)
+    return finished
+
+
+@nb.njit(cache=True, inline="always")
+def span_rows(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, px0, py0, pw, ph, yc, rows):
+    """rows [16] = per tile row, the bits of the pixels :func:`splat_forward` would visit for this Gaussian
+    (its row span clipped to the rectangle and the tile; 0 for rows it does not reach). Same inputs, same
+    arithmetic: a span computed here equals the one ``splat_forward`` computes."""
+    for ly in range(TILE):
+        rows[ly] = 0
+    y0 = max(ry0, py0) - py0
+    y1 = min(ry1, py0 + ph - 1) - py0
+    xr0 = max(rx0, px0)
+    xr1 = min(rx1, px0 + pw - 1)
+    if xr1 < xr0:
+        return
+    logo = math.log(np.float64(o) / np.float64(consts[1]))
+    for ly in range(y0, y1 + 1):
+        dy = yc[ly] - v
+        x0, x1 = _row_span(conic_a, conic_b, conic_c, u, np.float64(dy), logo, xr0, xr1, px0)
+        if x0 <= x1:
+            rows[ly] = _bits(x0, x1)
+
+
+@nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
+def splat_rows(consts, u, v, conic_a, conic_b, conic_c, o, ry0, ry1, rows, col, py0, ph, xc, yc, acc, trans,
+               row_done):
+    """:func:`splat_forward` with the row spans given (``rows`` from :func:`span_rows`): visits the same
+    pixels in the same order with the same arithmetic, so the result is the same bit for bit; returns how
+    many pixels it finished."""
+    amin = consts[1]
+    half = consts[3]
+    zero = consts[5]
+    y0 = max(ry0, py0) - py0
+    y1 = min(ry1, py0 + ph - 1) - py0
+    finished = 0
+    ready = False
+    ca = cc_ = smax = zero
+    for ly in range(y0, y1 + 1):
+        todo = np.int64(rows[ly]) & ~row_done[ly]
+        if todo == 0:
+            continue
+        if not ready:  # set up on the first row with work: Gaussians hidden behind finished pixels cost no log
+            ready = True
+            ca = conic_a * half
+            cc_ = conic_c * half
+            smax = zero + np.float32(math.log(np.float64(o) / np.float64(amin)) * 1.0001 + 1e-4)
+        dy = yc[ly] - v
+        finished += _blend_row(consts, todo, ly, dy, u, ca, conic_b, cc_, o, smax, col, xc, acc, trans, row_done)
     return finished
 
 
 @nb.njit(cache=True, inline="always")
 def tile_state(tile, tiles_x, width, height, D, dtype):
-    """Fresh accumulators of one tile: (px0, py0, pw, ph, acc, trans, done, row_done, xc, yc)."""
+    """Fresh accumulators of one tile: (px0, py0, pw, ph, acc, trans, row_done, xc, yc)."""
     ty = tile // tiles_x
     tx = tile - ty * tiles_x
     px0 = tx * TILE
@@ -295,14 +373,13 @@ def tile_state(tile, tiles_x, width, height, D, dtype):
     ph = min(TILE, height - py0)
     acc = np.zeros((TILE * TILE, D), dtype=dtype)
     trans = np.ones(TILE * TILE, dtype=dtype)
-    done = np.zeros(TILE * TILE, dtype=np.bool_)
     row_done = np.zeros(TILE, dtype=np.int64)  # bit lx set: pixel (lx, ly) has finished
     xc = np.empty(TILE, dtype=dtype)
     yc = np.empty(TILE, dtype=dtype)
     for j in range(TILE):
         xc[j] = (px0 + j) + 0.5
         yc[j] = (py0 + j) + 0.5
-    return px0, py0, pw, ph, acc, trans, done, row_done, xc, yc
+    return px0, py0, pw, ph, acc, trans, row_done, xc, yc
 
 
 @nb.njit(cache=True, inline="always")
@@ -333,7 +410,7 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
     for m in nb.prange(C * T):
         ct = tile_order[m]
         c = ct // T
-        px0, py0, pw, ph, acc, trans, done, row_done, xc, yc = tile_state(
+        px0, py0, pw, ph, acc, trans, row_done, xc, yc = tile_state(
             ct - c * T, tiles_x, width, height, D, out_colors.dtype)
         npix = pw * ph
         ndone = 0
@@ -346,7 +423,7 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
             ndone += splat_forward(consts, means2d[c, g, 0], means2d[c, g, 1], conics[c, g, 0], conics[c, g, 1],
                                    conics[c, g, 2], opacities[co, g], rects[c, g, 0], rects[c, g, 1],
                                    rects[c, g, 2], rects[c, g, 3], colors[cc, g], px0, py0, pw, ph, xc, yc,
-                                   acc, trans, done, row_done)
+                                   acc, trans, row_done)
         store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
 
 
@@ -386,7 +463,6 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
         ph = min(TILE, height - py0)
         npix = pw * ph
         trans = np.ones(TILE * TILE, dtype=out_T.dtype)
-        done = np.zeros(TILE * TILE, dtype=np.bool_)
         row_done = np.zeros(TILE, dtype=np.int64)  # bit lx set: pixel (lx, ly) has finished
         vpix = np.zeros((TILE * TILE, D), dtype=v_colors.dtype)
         va = np.zeros(TILE * TILE, dtype=v_colors.dtype)
@@ -451,15 +527,15 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                 x0, x1 = _row_span(conics[c, g, 0], cb, conics[c, g, 2], u, dyd, logo, xr0, xr1, px0)
                 if x1 < x0:
                     continue
-                span_bits = _bits(x0, x1)
-                if row_done[ly] & span_bits == span_bits:
-                    continue  # every pixel of the span has finished
+                todo = _bits(x0, x1) & ~row_done[ly]  # the span's unfinished pixels, as in the forward pass
+                if todo == 0:
+                    continue
                 bdy = cb * dy
                 cdy = cc_ * dy * dy
-                for lx in range(x0, x1 + 1):
+                while todo != 0:
+                    lx = _lowest_bit(todo)
+                    todo &= todo - 1
                     p = ly * TILE + lx
-                    if done[p]:
-                        continue
                     dx = xc[lx] - u
                     sigma = (ca * dx + bdy) * dx + cdy
                     if sigma < zero or sigma > smax:
@@ -472,7 +548,6 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                     tp = trans[p]
                     nt = tp * (one - alpha)
                     if nt < tmin:
-                        done[p] = True
                         row_done[ly] |= np.int64(1) << lx
                         ndone += 1
                         continue

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
+import numba as nb  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .poses import as_poses7, quat_normalize, quat_to_rotmat  # noqa: E402
@@ -27,6 +28,26 @@ __all__ = ["CollisionReport", "PhysicsProxy", "TABLE"]
 
 #: index used for the table (and floor) in :attr:`CollisionReport.penetrating`
 TABLE = -1
+
+
+@nb.njit(cache=True)
+def _hull_xy_boxes(p7, pts, off, out):
+    """out [K, 4] = (x min, x max, y min, y max) of each object's hull points pts[off[k]:off[k+1]] (object
+    frame) posed by p7 [K, 7] (unit quaternions, wxyz), in the world frame."""
+    for k in range(p7.shape[0]):
+        w, x, y, z = p7[k, 3], p7[k, 4], p7[k, 5], p7[k, 6]
+        r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+        r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+        xlo = ylo = np.inf
+        xhi = yhi = -np.inf
+        for i in range(off[k], off[k + 1]):
+            px, py, pz = pts[i, 0], pts[i, 1], pts[i, 2]
+            hx = px * r00 + py * r01 + pz * r02
+            hy = px * r10 + py * r11 + pz * r12
+            xlo, xhi = min(xlo, hx), max(xhi, hx)
+            ylo, yhi = min(ylo, hy), max(yhi, hy)
+        out[k, 0], out[k, 1] = xlo + p7[k, 0], xhi + p7[k, 0]
+        out[k, 2], out[k, 3] = ylo + p7[k, 1], yhi + p7[k, 1]
 
 
 @dataclass(frozen=True)
@@ -156,6 +177,9 @@ class PhysicsProxy:
         self._qadr = np.array([m.jnt_qposadr[m.body_jntadr[b]] for b in self._body], dtype=np.int64)
         self._vadr = np.array([m.jnt_dofadr[m.body_jntadr[b]] for b in self._body], dtype=np.int64)
         self._qidx = np.concatenate([np.arange(a, a + 7) for a in self._qadr])
+        self._hull_pts = np.ascontiguousarray(np.concatenate(self.hulls), np.float64)
+        self._hull_off = np.concatenate([[0], np.cumsum([len(h) for h in self.hulls])]).astype(np.int64)
+        self._boxes = np.empty((self.num_objects, 4))
         # MuJoCo re-centres a mesh at its centre of mass: body frame = object frame, geom offset in geom_pos
         self._fromto = np.zeros(6)
 
@@ -220,20 +244,16 @@ class PhysicsProxy:
                 key = (max(a, b), min(a, b)) if TABLE in (a, b) else (min(a, b), max(a, b))
                 deepest[key] = max(deepest.get(key, 0.0), -float(dist[i]))
         pairs = tuple(sorted(deepest))
-        oob = []
         t = self.world.table
-        rots = quat_to_rotmat(p7[:, 3:7])
-        for k in range(self.num_objects):
-            h = self.hulls[k] @ rots[k].T
-            lo = h[:, :2].min(axis=0) + p7[k, :2]
-            hi = h[:, :2].max(axis=0) + p7[k, :2]
-            if (
-                lo[0] < t.xmin - bounds_tol
-                or hi[0] > t.xmax + bounds_tol
-                or lo[1] < t.ymin - bounds_tol
-                or hi[1] > t.ymax + bounds_tol
-            ):
-                oob.append(k)
+        b = self._boxes
+        _hull_xy_boxes(p7, self._hull_pts, self._hull_off, b)
+        out = (
+            (b[:, 0] < t.xmin - bounds_tol)
+            | (b[:, 1] > t.xmax + bounds_tol)
+            | (b[:, 2] < t.ymin - bounds_tol)
+            | (b[:, 3] > t.ymax + bounds_tol)
+        )
+        oob = np.flatnonzero(out).tolist()
         dmin = np.inf if distance else np.nan
         for i in range(self.num_objects if distance else 0):
             for j in range(i + 1, self.num_objects):

@@ -4,7 +4,9 @@ Single ``DSGWorld-v0`` on the bundled world (or ``--world FILE``, e.g. a ``dsg-c
 with ``obs=("rgb", "mask")``, random moves of one object per step (``collision="reject"``), with
 incremental and with full rendering (``--env-only``: just these two); MuJoCo's own EGL render
 (RGB + segmentation) of the matching synthetic scene at the same size with one object moved per frame; and
-an ``AsyncVectorEnv`` (shared memory) with 2 workers. All in one run; rates are medians over repeats.
+an ``AsyncVectorEnv`` (shared memory) with 2 workers. All in one run; rates are medians over repeats
+(``--repeats`` of ``--steps`` each; the full-render env takes a quarter of the steps). The incremental env
+and MuJoCo alternate repeat by repeat, so their ratio compares runs under the same machine load.
 """
 
 from __future__ import annotations
@@ -35,65 +37,98 @@ def _one_object_actions(rng: np.random.Generator, n: int, k: int, per: int = 4) 
     return a
 
 
-def env_rate(incremental: bool, size: int, steps: int, repeats: int, seed: int = 0,
-             world: str | None = None) -> dict:
-    env = gym.make("DSGWorld-v0", world=world, width=size, height=size, obs=("rgb", "mask"),
-                   incremental=incremental)
-    k = env.unwrapped.K
-    env.reset(seed=seed)
-    rng = np.random.default_rng(seed)
-    for a in _one_object_actions(rng, 30, k):  # warm-up (numba load, caches)
-        env.step(a)
-    rates, tiles, rejected = [], [], 0
-    for _ in range(repeats):
-        acts = _one_object_actions(rng, steps, k)
+class EnvRun:
+    """A single env stepped by random one-object moves; ``run(steps)`` returns steps/s of one repeat."""
+
+    def __init__(self, incremental: bool, size: int, seed: int = 0, world: str | None = None):
+        self.env = gym.make("DSGWorld-v0", world=world, width=size, height=size, obs=("rgb", "mask"),
+                            incremental=incremental)
+        self.k = self.env.unwrapped.K
+        self.env.reset(seed=seed)
+        self.rng = np.random.default_rng(seed)
+        self.rates, self.tiles, self.rejected = [], [], 0
+        for a in _one_object_actions(self.rng, 30, self.k):  # warm-up (numba load, caches)
+            self.env.step(a)
+
+    def run(self, steps: int) -> float:
+        env = self.env
+        acts = _one_object_actions(self.rng, steps, self.k)
         t0 = time.perf_counter()
         for a in acts:
             _, _, term, trunc, info = env.step(a)
-            rejected += int(info["rejected"].any())
-            tiles.append(env.unwrapped.renderer.last_dirty_tiles)
+            self.rejected += int(info["rejected"].any())
+            self.tiles.append(env.unwrapped.renderer.last_dirty_tiles)
             if term or trunc:
                 env.reset()
-        rates.append(steps / (time.perf_counter() - t0))
-    env.close()
-    return {
-        "steps_per_s": float(np.median(rates)),
-        "runs": [round(r, 1) for r in rates],
-        "mean_tiles_recomposited": float(np.mean(tiles)),
-        "rejected_fraction": rejected / (steps * repeats),
-    }
+        self.rates.append(steps / (time.perf_counter() - t0))
+        return self.rates[-1]
+
+    def result(self) -> dict:
+        self.env.close()
+        return {
+            "steps_per_s": float(np.median(self.rates)),
+            "runs": [round(r, 1) for r in self.rates],
+            "mean_tiles_recomposited": float(np.mean(self.tiles)),
+            "rejected_fraction": self.rejected / len(self.tiles),
+        }
+
+
+def env_rate(incremental: bool, size: int, steps: int, repeats: int, seed: int = 0,
+             world: str | None = None) -> dict:
+    r = EnvRun(incremental, size, seed, world)
+    for _ in range(repeats):
+        r.run(steps)
+    return r.result()
+
+
+class MujocoRun:
+    """MuJoCo's own EGL render (RGB + segmentation) of the matching synthetic scene, one random object moved
+    by up to 2 cm per frame; ``run(frames)`` returns frames/s of one repeat."""
+
+    def __init__(self, size: int, seed: int = 0):
+        import mujoco
+
+        from train_world.geom_world import capture_cameras
+        from train_world.synth import resolve_scene
+        from train_world.synth.build import build_scene
+        from train_world.synth.generate import rng_for
+        from train_world.synth.render import SceneRenderer
+        from train_world.synth.states import sample_states
+
+        spec = resolve_scene("two_blocks")
+        self.built = build_scene(spec, size, size)
+        self.data = mujoco.MjData(self.built.model)
+        self.poses = sample_states(spec, rng_for(0, "states"), 3)["state1"]
+        self.cam = capture_cameras(spec, 0, "state1", 1, size, size)[0][0]
+        self.rng = np.random.default_rng(seed)
+        self.renderer = SceneRenderer(self.built, size, size)
+        self.rates = []
+        for _ in range(10):
+            self.renderer.render(self.data, self.cam, rgb=True, seg=True, depth=False)
+
+    def run(self, frames: int) -> float:
+        from train_world.synth.build import set_object_poses
+
+        t0 = time.perf_counter()
+        for _ in range(frames):
+            p = self.poses.copy()
+            k = self.rng.integers(len(p))
+            p[k, :2, 3] += self.rng.uniform(-0.02, 0.02, 2)
+            set_object_poses(self.built, self.data, p)
+            self.renderer.render(self.data, self.cam, rgb=True, seg=True, depth=False)
+        self.rates.append(frames / (time.perf_counter() - t0))
+        return self.rates[-1]
+
+    def result(self) -> dict:
+        self.renderer.close()
+        return {"frames_per_s": float(np.median(self.rates)), "runs": [round(r, 1) for r in self.rates]}
 
 
 def mujoco_rate(size: int, frames: int, repeats: int, seed: int = 0) -> dict:
-    import mujoco
-
-    from train_world.geom_world import capture_cameras
-    from train_world.synth import resolve_scene
-    from train_world.synth.build import build_scene, set_object_poses
-    from train_world.synth.generate import rng_for
-    from train_world.synth.render import SceneRenderer
-    from train_world.synth.states import sample_states
-
-    spec = resolve_scene("two_blocks")
-    built = build_scene(spec, size, size)
-    data = mujoco.MjData(built.model)
-    poses = sample_states(spec, rng_for(0, "states"), 3)["state1"]
-    c2w, _ = capture_cameras(spec, 0, "state1", 1, size, size)
-    rng = np.random.default_rng(seed)
-    rates = []
-    with SceneRenderer(built, size, size) as r:
-        for _ in range(10):
-            r.render(data, c2w[0], rgb=True, seg=True, depth=False)
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            for _ in range(frames):
-                p = poses.copy()
-                k = rng.integers(len(p))
-                p[k, :2, 3] += rng.uniform(-0.02, 0.02, 2)
-                set_object_poses(built, data, p)
-                r.render(data, c2w[0], rgb=True, seg=True, depth=False)
-            rates.append(frames / (time.perf_counter() - t0))
-    return {"frames_per_s": float(np.median(rates)), "runs": [round(r, 1) for r in rates]}
+    r = MujocoRun(size, seed)
+    for _ in range(repeats):
+        r.run(frames)
+    return r.result()
 
 
 def async_rate(size: int, steps: int, repeats: int, workers: int = 2, world: str | None = None) -> dict:
@@ -131,14 +166,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="step.json")
     ap.add_argument("--size", type=int, default=128)
-    ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--steps", type=int, default=600, help="steps (frames) per repeat")
+    ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--world", help="world file (default: the bundled world)")
     ap.add_argument("--env-only", action="store_true", help="only the single-env rates (no MuJoCo, no async)")
     args = ap.parse_args(argv)
-    inc = env_rate(True, args.size, args.steps, args.repeats, world=args.world)
-    full = env_rate(False, args.size, args.steps, args.repeats, world=args.world)
-    mj = None if args.env_only else mujoco_rate(args.size, args.steps, args.repeats)
+    # the incremental env and MuJoCo take turns repeat by repeat, so that a change in the machine's load
+    # reaches both rates alike
+    runs = [EnvRun(True, args.size, world=args.world)] + ([] if args.env_only else [MujocoRun(args.size)])
+    for _ in range(args.repeats):
+        for r in runs:
+            r.run(args.steps)
+    inc = runs[0].result()
+    mj = runs[1].result() if len(runs) > 1 else None
+    full = env_rate(False, args.size, max(1, args.steps // 4), args.repeats, world=args.world)
     vec = None if args.env_only else async_rate(args.size, args.steps // 2, args.repeats, world=args.world)
     ratio = inc["steps_per_s"] / mj["frames_per_s"] if mj else None
     result = {

@@ -86,9 +86,7 @@ def _tile_scores(
     """
     C = means2d.shape[0]
     T = tiles_x * tiles_y
-    amax = consts[0]
     amin = consts[1]
-    tmin = consts[2]
     half = consts[3]
     one = consts[4]
     zero = consts[5]
@@ -179,16 +177,11 @@ def _tile_scores(
                     lx = R._lowest_bit(todo)
                     todo &= todo - 1
                     p = ly * TILE + lx
-                    dx = xc[lx] - u
-                    sigma = (ca * dx + bdy) * dx + cdy
-                    if sigma < zero or sigma > smax:
-                        continue
-                    alpha = min(amax, o * math.exp(-sigma))
-                    if alpha < amin:
-                        continue
                     tp = trans[p]
-                    nt = tp * (one - alpha)
-                    if nt < tmin:
+                    code, alpha, _, nt = R.pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp)
+                    if code == 0:
+                        continue
+                    if code == 1:
                         row_done[ly] |= np.int64(1) << lx
                         ndone += 1
                         continue

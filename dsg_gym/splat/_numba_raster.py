@@ -235,15 +235,31 @@ def _rows_done(row_done, y0, y1, x0, x1):
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
+def pixel_step(consts, ca, bdy, cdy, dx, o, smax, tp):
+    """The compositing rule at one pixel (module docstring) for a Gaussian with halved conic terms ca, cdy
+    (row part bdy = b dy) at x offset dx, opacity o, sigma cut-off smax, over transmittance tp. Returns
+    ``(code, alpha, gauss, nt)``: code 0 = no contribution, 1 = the pixel finishes here (the Gaussian does
+    not contribute), 2 = blend with weight alpha tp, leaving transmittance nt; gauss = exp(-sigma). Every
+    forward, backward and replaying kernel decides through this function, so they agree bit for bit."""
+    zero = consts[5]
+    sigma = (ca * dx + bdy) * dx + cdy
+    if sigma < zero or sigma > smax:
+        return 0, zero, zero, tp
+    gauss = math.exp(-sigma)
+    alpha = min(consts[0], o * gauss)
+    if alpha < consts[1]:
+        return 0, alpha, gauss, tp
+    nt = tp * (consts[4] - alpha)
+    if nt < consts[2]:
+        return 1, alpha, gauss, nt
+    return 2, alpha, gauss, nt
+
+
+@nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _blend_row(consts, todo, ly, dy, u, ca, cb, cc_, o, smax, col, xc, acc, trans, row_done):
     """Blend one Gaussian into the pixels ``todo`` (bits) of tile row ``ly`` (dy = row centre - v, ca and
     cc_ the halved conic terms), in increasing x; returns how many pixels it finished. The per-pixel
     arithmetic of every forward kernel (the backward pass replays it)."""
-    amax = consts[0]
-    amin = consts[1]
-    tmin = consts[2]
-    one = consts[4]
-    zero = consts[5]
     D = col.shape[0]
     finished = 0
     bdy = cb * dy
@@ -252,16 +268,11 @@ def _blend_row(consts, todo, ly, dy, u, ca, cb, cc_, o, smax, col, xc, acc, tran
         lx = _lowest_bit(todo)
         todo &= todo - 1
         p = ly * TILE + lx
-        dx = xc[lx] - u
-        sigma = (ca * dx + bdy) * dx + cdy
-        if sigma < zero or sigma > smax:
-            continue
-        alpha = min(amax, o * math.exp(-sigma))
-        if alpha < amin:
-            continue
         tp = trans[p]
-        nt = tp * (one - alpha)
-        if nt < tmin:
+        code, alpha, _, nt = pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp)
+        if code == 0:
+            continue
+        if code == 1:
             row_done[ly] |= np.int64(1) << lx
             finished += 1
             continue
@@ -445,9 +456,7 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
     T = tiles_x * tiles_y
     amax = consts[0]
     amin = consts[1]
-    tmin = consts[2]
     half = consts[3]
-    one = consts[4]
     zero = consts[5]
     for m in nb.prange(C * T):
         ct = tile_order[m]
@@ -537,20 +546,15 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                     todo &= todo - 1
                     p = ly * TILE + lx
                     dx = xc[lx] - u
-                    sigma = (ca * dx + bdy) * dx + cdy
-                    if sigma < zero or sigma > smax:
-                        continue
-                    gauss = math.exp(-sigma)
-                    raw = o * gauss
-                    alpha = min(amax, raw)
-                    if alpha < amin:
-                        continue
                     tp = trans[p]
-                    nt = tp * (one - alpha)
-                    if nt < tmin:
+                    code, alpha, gauss, nt = pixel_step(consts, ca, bdy, cdy, dx, o, smax, tp)
+                    if code == 0:
+                        continue
+                    if code == 1:
                         row_done[ly] |= np.int64(1) << lx
                         ndone += 1
                         continue
+                    raw = o * gauss
                     w = alpha * tp
                     trans[p] = nt
                     vp = vpix[p]

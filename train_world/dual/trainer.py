@@ -36,7 +36,6 @@ from train_world.recon.checkpoint import (
 )
 from train_world.recon.data import TrainData, load_training_data
 from train_world.recon.field import PARAM_NAMES, SegmentedField
-from train_world.recon.losses import identity_loss, neighbour_kl_loss, photometric_loss, psnr
 from train_world.recon.presets import TrainConfig
 from train_world.recon.trainer import Trainer, TrainingDiverged, check_gradients, make_optimizers, means_lr
 
@@ -154,26 +153,9 @@ class DualTrainer:
         )
 
     def _recon_loss(self, t: Trainer, i: int, deg: int) -> tuple[torch.Tensor, Any, float]:
-        d, p = t.data, self.preset
-        out = t.field.render(
-            d.viewmats[i : i + 1],
-            d.Ks[i : i + 1],
-            d.width,
-            d.height,
-            sh_degree=deg,
-            background=t.background,
-            with_features=self.has_masks,
-        )
+        loss, out, stats = t.view_loss(i, deg, self.classifier, self.step)  # the shared classifier
         t.strategy.before_backward(out.meta)
-        loss = photometric_loss(out.rgb[0], d.images[i], p.lambda_dssim)
-        if self.has_masks:
-            loss = loss + p.lambda_identity * identity_loss(self.classifier(out.features[0]), d.classes[i])
-            if p.reg3d_weight > 0 and (self.step + 1) % p.reg3d_every == 0:
-                reg = neighbour_kl_loss(
-                    t.field.means, self.classifier(t.field.features), p.reg3d_k, p.reg3d_samples, t.generator
-                )
-                loss = loss + p.reg3d_weight * reg
-        return loss, out.meta, psnr(out.rgb[0].clamp(0, 1), d.images[i])
+        return loss, out.meta, stats["psnr"]
 
     def _render_moved(self, t: Trainer, transform, d: TrainData, i: int, deg: int):
         return t.field.render(

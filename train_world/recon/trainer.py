@@ -168,10 +168,14 @@ class Trainer:
         i, self.queue = int(self.queue[0]), self.queue[1:]
         return i
 
-    def train_step(self) -> dict[str, float]:
+    def view_loss(self, i: int, deg: int, classifier: torch.nn.Module | None = None, step: int | None = None):
+        """Reconstruction loss of training view ``i`` at SH degree ``deg``: the photometric term, with masks
+        the identity cross-entropy (``classifier``, default this trainer's) and every ``reg3d_every`` steps the
+        3D neighbour term. Returns ``(loss, render output, stats)`` (stats: psnr, and id with masks);
+        ``step``: the step counter (default this trainer's)."""
         d, p = self.data, self.preset
-        i = self._next_view()
-        deg = min(self.step // p.sh_degree_every, self.field.max_sh_degree)
+        classifier = self.classifier if classifier is None else classifier
+        step = self.step if step is None else step
         out = self.field.render(
             d.viewmats[i : i + 1],
             d.Ks[i : i + 1],
@@ -181,24 +185,26 @@ class Trainer:
             background=self.background,
             with_features=self.has_masks,
         )
-        self.strategy.before_backward(out.meta)
         gt = d.images[i]
         loss = photometric_loss(out.rgb[0], gt, p.lambda_dssim)
         stats = {"psnr": psnr(out.rgb[0].clamp(0, 1), gt)}
         if self.has_masks:
-            logits = self.classifier(out.features[0])
-            id_loss = identity_loss(logits, d.classes[i])
+            id_loss = identity_loss(classifier(out.features[0]), d.classes[i])
             loss = loss + p.lambda_identity * id_loss
             stats["id"] = float(id_loss.detach())
-            if p.reg3d_weight > 0 and (self.step + 1) % p.reg3d_every == 0:
+            if p.reg3d_weight > 0 and (step + 1) % p.reg3d_every == 0:
                 reg = neighbour_kl_loss(
-                    self.field.means,
-                    self.classifier(self.field.features),
-                    p.reg3d_k,
-                    p.reg3d_samples,
-                    self.generator,
+                    self.field.means, classifier(self.field.features), p.reg3d_k, p.reg3d_samples, self.generator
                 )
                 loss = loss + p.reg3d_weight * reg
+        return loss, out, stats
+
+    def train_step(self) -> dict[str, float]:
+        p = self.preset
+        i = self._next_view()
+        deg = min(self.step // p.sh_degree_every, self.field.max_sh_degree)
+        loss, out, stats = self.view_loss(i, deg)
+        self.strategy.before_backward(out.meta)
         stats["loss"] = float(loss.detach())
         if not math.isfinite(stats["loss"]):
             where = (

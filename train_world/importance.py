@@ -174,16 +174,12 @@ def _tile_scores(
                 bdy = cb * dy
                 cdy = cc_ * dy * dy
                 while todo != 0:
-                    lx = R._lowest_bit(todo)
-                    todo &= todo - 1
+                    lx, todo = R._pop_bit(todo)
                     p = ly * TILE + lx
                     tp = trans[p]
-                    code, alpha, _, nt = R.pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp)
-                    if code == 0:
-                        continue
-                    if code == 1:
-                        row_done[ly] |= np.int64(1) << lx
-                        ndone += 1
+                    code, alpha, _, nt = R.pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp, row_done, ly, lx)
+                    if code < 2:
+                        ndone += code
                         continue
                     w = alpha * tp
                     trans[p] = nt

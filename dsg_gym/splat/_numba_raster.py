@@ -225,6 +225,12 @@ def _lowest_bit(typingctx, x):
 
 
 @nb.njit(cache=True, inline="always")
+def _pop_bit(bits):
+    """(index of the lowest set bit of ``bits`` (not 0), ``bits`` without it)."""
+    return _lowest_bit(bits), bits & (bits - 1)
+
+
+@nb.njit(cache=True, inline="always")
 def _rows_done(row_done, y0, y1, x0, x1):
     """True when every pixel of columns x0..x1 in rows y0..y1 has finished."""
     bits = _bits(x0, x1)
@@ -235,12 +241,13 @@ def _rows_done(row_done, y0, y1, x0, x1):
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
-def pixel_step(consts, ca, bdy, cdy, dx, o, smax, tp):
-    """The compositing rule at one pixel (module docstring) for a Gaussian with halved conic terms ca, cdy
-    (row part bdy = b dy) at x offset dx, opacity o, sigma cut-off smax, over transmittance tp. Returns
-    ``(code, alpha, gauss, nt)``: code 0 = no contribution, 1 = the pixel finishes here (the Gaussian does
-    not contribute), 2 = blend with weight alpha tp, leaving transmittance nt; gauss = exp(-sigma). Every
-    forward, backward and replaying kernel decides through this function, so they agree bit for bit."""
+def pixel_step(consts, ca, bdy, cdy, dx, o, smax, tp, row_done, ly, lx):
+    """The compositing rule at tile pixel (lx, ly) (module docstring) for a Gaussian with halved conic terms
+    ca, cdy (row part bdy = b dy) at x offset dx, opacity o, sigma cut-off smax, over transmittance tp.
+    Returns ``(code, alpha, gauss, nt)``: code 0 = no contribution, 1 = the pixel finishes here (marked in
+    row_done; the Gaussian does not contribute), 2 = blend with weight alpha tp, leaving transmittance nt;
+    gauss = exp(-sigma). Every forward, backward and replaying kernel decides through this function, so they
+    agree bit for bit."""
     zero = consts[5]
     sigma = (ca * dx + bdy) * dx + cdy
     if sigma < zero or sigma > smax:
@@ -251,6 +258,7 @@ def pixel_step(consts, ca, bdy, cdy, dx, o, smax, tp):
         return 0, alpha, gauss, tp
     nt = tp * (consts[4] - alpha)
     if nt < consts[2]:
+        row_done[ly] |= np.int64(1) << lx
         return 1, alpha, gauss, nt
     return 2, alpha, gauss, nt
 
@@ -265,16 +273,12 @@ def _blend_row(consts, todo, ly, dy, u, ca, cb, cc_, o, smax, col, xc, acc, tran
     bdy = cb * dy
     cdy = cc_ * dy * dy
     while todo != 0:
-        lx = _lowest_bit(todo)
-        todo &= todo - 1
+        lx, todo = _pop_bit(todo)
         p = ly * TILE + lx
         tp = trans[p]
-        code, alpha, _, nt = pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp)
-        if code == 0:
-            continue
-        if code == 1:
-            row_done[ly] |= np.int64(1) << lx
-            finished += 1
+        code, alpha, _, nt = pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp, row_done, ly, lx)
+        if code < 2:
+            finished += code
             continue
         w = alpha * tp
         for d in range(D):
@@ -542,17 +546,13 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                 bdy = cb * dy
                 cdy = cc_ * dy * dy
                 while todo != 0:
-                    lx = _lowest_bit(todo)
-                    todo &= todo - 1
+                    lx, todo = _pop_bit(todo)
                     p = ly * TILE + lx
                     dx = xc[lx] - u
                     tp = trans[p]
-                    code, alpha, gauss, nt = pixel_step(consts, ca, bdy, cdy, dx, o, smax, tp)
-                    if code == 0:
-                        continue
-                    if code == 1:
-                        row_done[ly] |= np.int64(1) << lx
-                        ndone += 1
+                    code, alpha, gauss, nt = pixel_step(consts, ca, bdy, cdy, dx, o, smax, tp, row_done, ly, lx)
+                    if code < 2:
+                        ndone += code
                         continue
                     raw = o * gauss
                     w = alpha * tp

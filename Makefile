@@ -23,6 +23,7 @@ demo: $(STAMP)
 	$(PY) -m dsg_gym.demo
 
 test: $(STAMP)
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q tests
 
 bench: $(STAMP)

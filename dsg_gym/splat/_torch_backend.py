@@ -7,7 +7,6 @@ every pixel of the tile (``tile_size=None`` evaluates every Gaussian on every pi
 
 from __future__ import annotations
 
-import math
 
 import torch
 

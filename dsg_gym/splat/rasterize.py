@@ -8,7 +8,7 @@ from typing import Any
 import torch
 
 from . import _numba_backend, _torch_backend
-from ..splat_options import DEFAULT_EPS2D, RASTERIZE_MODES, check_splat_options
+from ..splat_options import DEFAULT_EPS2D, RASTERIZE_MODES, check_splat_options  # noqa: F401  (re-exported)
 from .sh import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")

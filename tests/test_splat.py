@@ -399,3 +399,44 @@ def test_splat_rows_with_precomputed_spans_equals_splat_forward():
         for x, y in zip(a[4:7], b[4:7]):
             np.testing.assert_array_equal(x, y)
     assert finished > 100  # pixels saturated, so the skipping of finished pixels was exercised
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_numba_sh_matches_the_torch_reference_with_gradients(degree, dtype):
+    from dsg_gym.splat.sh import _numba_shapes, _spherical_harmonics_torch
+
+    g = torch.Generator().manual_seed(degree)
+    dirs = torch.randn((2, 40, 3), generator=g, dtype=dtype)
+    dirs[0, 0] = 0.0  # a zero direction: constant term only
+    coeffs = torch.randn((1, 40, 16, 3), generator=g, dtype=dtype)  # more bases than the degree uses
+    assert _numba_shapes(dirs, coeffs) == (2, 40)
+    w = torch.randn((2, 40, 3), generator=g, dtype=dtype)
+    outs, grads = [], []
+    for fn in (spherical_harmonics, _spherical_harmonics_torch):
+        d = dirs.clone().requires_grad_(True)
+        c = coeffs.clone().requires_grad_(True)
+        out = fn(degree, d, c)
+        (out * w).sum().backward()
+        outs.append(out.detach())
+        grads.append((d.grad, c.grad))
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(outs[0], outs[1], rtol=tol, atol=tol)
+    for a, b in zip(grads[0], grads[1]):
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol * max(1.0, float(b.abs().max())))
+    unused = grads[0][1][:, :, (degree + 1) ** 2:]
+    assert unused.numel() == 0 or float(unused.abs().max()) == 0.0  # unused bases get no gradient
+
+
+def test_numba_sh_gradcheck_and_fallbacks():
+    from dsg_gym.splat.sh import _numba_shapes
+
+    g = torch.Generator().manual_seed(5)
+    d = torch.randn((3, 6, 3), generator=g, dtype=torch.float64, requires_grad=True)
+    c = torch.randn((6, 16, 3), generator=g, dtype=torch.float64, requires_grad=True)
+    assert _numba_shapes(d, c) == (3, 6)
+    assert torch.autograd.gradcheck(lambda a, b: spherical_harmonics(3, a, b), (d, c))
+    # per-view coefficients, other channel counts and mixed dtypes take the torch path
+    assert _numba_shapes(d, c[None].expand(3, -1, -1, -1)) is None
+    assert _numba_shapes(d, c[..., :2]) is None
+    assert _numba_shapes(d.float(), c) is None

@@ -8,6 +8,7 @@ import torch
 from . import _numba_project as P
 from . import _torch_backend
 from . import _numba_raster as R
+from . import _numba_sh as S
 
 
 _consts = R.make_consts
@@ -155,3 +156,28 @@ def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, 
 
 def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, width, height):
     return _Composite.apply(means2d, conics, colors, opacities, backgrounds, depths, rects, width, height)
+
+
+class _SH(torch.autograd.Function):
+    """SH colours of N Gaussians seen in C views (:mod:`._numba_sh`): dirs [C,N,3], coeffs [N,K,3]."""
+
+    @staticmethod
+    def forward(ctx, degree, dirs, coeffs):
+        out = torch.empty(dirs.shape, dtype=dirs.dtype)
+        S.sh_forward(int(degree), _np(dirs), _np(coeffs), out.numpy())
+        ctx.save_for_backward(dirs, coeffs)
+        ctx.degree = int(degree)
+        return out
+
+    @staticmethod
+    def backward(ctx, v_out):
+        dirs, coeffs = ctx.saved_tensors
+        v_dirs = torch.empty(dirs.shape, dtype=dirs.dtype)
+        v_coeffs = torch.empty(coeffs.shape, dtype=coeffs.dtype)
+        S.sh_backward(ctx.degree, _np(dirs), _np(coeffs), _np(v_out), v_dirs.numpy(), v_coeffs.numpy())
+        return None, v_dirs, v_coeffs
+
+
+def sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+    """``[C, N, 3]`` SH values (no +0.5) at view directions ``dirs [C, N, 3]`` of coefficients ``[N, K, 3]``."""
+    return _SH.apply(degree, dirs, coeffs)

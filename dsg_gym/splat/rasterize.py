@@ -9,7 +9,7 @@ import torch
 
 from . import _numba_backend, _torch_backend
 from ..splat_options import DEFAULT_EPS2D, RASTERIZE_MODES, check_splat_options  # noqa: F401  (re-exported)
-from .sh import num_sh_bases, spherical_harmonics
+from .sh import _spherical_harmonics_torch, num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 BACKENDS = ("auto", "numba", "torch")
@@ -149,7 +149,8 @@ def rasterize(
             raise ValueError(f"colors has {colors.shape[-2]} SH bases, sh_degree {sh_degree} needs {k}")
         campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C,3]
         dirs = means[None, :, :] - campos[:, None, :]
-        cols = torch.clamp_min(spherical_harmonics(sh_degree, dirs, colors) + 0.5, 0.0)
+        sh_fn = _spherical_harmonics_torch if backend == "torch" else spherical_harmonics  # the reference stays torch
+        cols = torch.clamp_min(sh_fn(sh_degree, dirs, colors) + 0.5, 0.0)
         if cols.dim() == 2:
             cols = cols[None]
     D = cols.shape[-1]

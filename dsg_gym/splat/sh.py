@@ -41,6 +41,35 @@ def spherical_harmonics(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor) -
         raise ValueError(f"dirs must have shape [..., 3], got {tuple(dirs.shape)}")
     if degree == 0:
         return C0 * coeffs[..., 0, :]
+    fast = _numba_shapes(dirs, coeffs)
+    if fast is not None:  # CPU, RGB, coefficients shared by the leading views: one numba pass each way
+        from ._numba_backend import sh_colors
+
+        C, N = fast
+        out = sh_colors(degree, dirs.reshape(C, N, 3), coeffs.reshape(N, coeffs.shape[-2], 3))
+        return out.reshape(dirs.shape)
+    return _spherical_harmonics_torch(degree, dirs, coeffs)
+
+
+def _numba_shapes(dirs: torch.Tensor, coeffs: torch.Tensor) -> tuple[int, int] | None:
+    """(C, N) when ``dirs [..., N, 3]`` and ``coeffs [(1,)* N, K, 3]`` suit the numba kernels, else None."""
+    if dirs.device.type != "cpu" or coeffs.device.type != "cpu" or coeffs.shape[-1] != 3:
+        return None
+    if dirs.dtype not in (torch.float32, torch.float64) or coeffs.dtype != dirs.dtype or dirs.dim() < 2:
+        return None
+    N = dirs.shape[-2]
+    lead = coeffs.shape[:-2]
+    if len(lead) == 0 or lead[-1] != N or any(s != 1 for s in lead[:-1]) or len(lead) > dirs.dim() - 1:
+        return None
+    C = dirs.numel() // (3 * N) if N else 0
+    return (C, N) if C > 0 else None
+
+
+def _spherical_harmonics_torch(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+    """The torch reference of :func:`spherical_harmonics` (any device, dtype and broadcasting)."""
+    k = num_sh_bases(degree)
+    if degree == 0:
+        return C0 * coeffs[..., 0, :]
     basis = _basis(degree, dirs)  # [..., k]
     # one batched [1, k] x [k, D] product: its backward is two more, where indexing each coefficient
     # (coeffs[..., i, :]) would allocate and fill a full-size zero gradient per coefficient

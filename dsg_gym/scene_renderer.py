@@ -22,6 +22,7 @@ import numba as nb
 import numpy as np
 
 from .gaussians import GaussianSet
+from .splat import _numba_bins as Bn
 from .splat import _numba_incremental as I
 from .splat import _numba_project as P
 from .splat import _numba_raster as R
@@ -98,8 +99,8 @@ def _antialias(conics: np.ndarray, opacities: np.ndarray, eps2d: float, parallel
 
 
 def _bins(proj: _Projected, tiles_x: int, tiles_y: int):
-    order, counts = R.depth_order(proj.depths.view(np.uint32), proj.rects)
-    offsets, gauss, _, _ = R.bin_gaussians(proj.rects, order, counts, tiles_x, tiles_y)
+    order, counts = Bn.depth_order(proj.depths.view(np.uint32), proj.rects)
+    offsets, gauss, _, _ = Bn.bin_gaussians(proj.rects, order, counts, tiles_x, tiles_y)
     return offsets, gauss
 
 

@@ -31,6 +31,7 @@ import numba as nb
 import numpy as np
 
 from dsg_gym.gaussians import GaussianSet
+from dsg_gym.splat import _numba_bins as Bn
 from dsg_gym.splat import _numba_incremental as I
 from dsg_gym.splat import _numba_project as P
 from dsg_gym.splat import _numba_raster as R
@@ -292,8 +293,8 @@ def gaussian_importance(
         if rasterize_mode == "antialiased":  # per-camera opacities after the 2D Mip filter
             op = np.empty((C, n), np.float32)
             P.antialias_opacities(cn, opac, op, float(eps2d))
-        order, counts = R.depth_order(dp.view(np.uint32), rects)
-        t_off, t_gauss, g_off, g_pairs = R.bin_gaussians(rects, order, counts, tiles_x, tiles_y)
+        order, counts = Bn.depth_order(dp.view(np.uint32), rects)
+        t_off, t_gauss, g_off, g_pairs = Bn.bin_gaussians(rects, order, counts, tiles_x, tiles_y)
         pair_out = np.zeros((len(t_gauss), 2), np.float64)
         _tile_scores(
             m2,
@@ -308,7 +309,7 @@ def gaussian_importance(
             int(width),
             int(height),
             consts,
-            R.balanced_order(C * tiles_x * tiles_y),
+            Bn.balanced_order(C * tiles_x * tiles_y),
             bg,
             pair_out,
         )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from . import _numba_bins as B
 from . import _numba_project as P
 from . import _torch_backend
 from . import _numba_raster as R
@@ -76,14 +77,14 @@ class _Composite(torch.autograd.Function):
         # Visible depths are >= near > 0, so their bit patterns sort like the values; the radix
         # sort is stable (equal depths keep index order): the result is deterministic.
         keys = d.view(np.uint32 if d.dtype == np.float32 else np.uint64)
-        order, counts = R.depth_order(keys, r)
-        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = R.bin_gaussians(r, order, counts, tiles_x,
+        order, counts = B.depth_order(keys, r)
+        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = B.bin_gaussians(r, order, counts, tiles_x,
                                                                                tiles_y)
         out = torch.empty((C, height, width, D), dtype=dt)
         out_T = torch.empty((C, height, width), dtype=dt)
         m2, cn, op, col = _np(means2d), _np(conics), _np(opacities), _np(colors)
         R.composite_forward(m2, cn, op, col, r, tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
-                            _consts(m2.dtype), R.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy())
+                            _consts(m2.dtype), B.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy())
         if backgrounds is not None:
             out += out_T[..., None] * backgrounds[:, None, None, :].detach()
         alphas = (1.0 - out_T)[..., None]
@@ -109,7 +110,7 @@ class _Composite(torch.autograd.Function):
         pair_grads = np.zeros((tile_gauss.shape[0], D + 6), dtype=vo.dtype)
         R.composite_backward(_np(means2d), _np(conics), _np(opacities), _np(colors), _np(rects),
                              tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
-                             _consts(out.numpy().dtype), R.balanced_order(C * tiles_x * tiles_y), out.numpy(),
+                             _consts(out.numpy().dtype), B.balanced_order(C * tiles_x * tiles_y), out.numpy(),
                              out_T.numpy(), vo, _np(v_alphas[..., 0]), pair_grads)
         v_means2d = torch.empty((C, N, 2), dtype=dt)
         v_conics = torch.empty((C, N, 3), dtype=dt)

@@ -14,9 +14,9 @@ import math
 import numba as nb
 import numpy as np
 
-from ._numba_raster import (_FASTMATH, TILE, depth_order, span_rows, splat_forward, splat_rows, store_tile,
-                            tile_state)
-from .sh import C0, C1, C2, C3
+from ._numba_bins import depth_order
+from ._numba_raster import _FASTMATH, TILE, span_rows, splat_forward, splat_rows, store_tile, tile_state
+from ._numba_sh import sh_basis
 
 _TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS
 assert 1 << _TILE_BITS == TILE
@@ -331,15 +331,12 @@ def sh_to_rgb(means_w, R, campos, sh, degree, out):
     """RGB = max(0, SH(dir) + 0.5) for Gaussians of one object seen from ``campos``.
 
     means_w [n,3] world centres, R [3,3] the object's rotation (the view direction is taken
-    into the object frame, where the coefficients live), sh [n,K,3], out [n,3].
+    into the object frame, where the coefficients live), sh [n,K,3], out [n,3]. The basis is
+    :mod:`._numba_sh`'s (the training kernels'), evaluated in float64.
     """
+    K = (degree + 1) * (degree + 1)
+    b = np.empty(16)
     for i in range(means_w.shape[0]):
-        for ch in range(3):
-            out[i, ch] = C0 * sh[i, 0, ch]
-        if degree == 0:
-            for ch in range(3):
-                out[i, ch] = max(out[i, ch] + 0.5, 0.0)
-            continue
         wx = np.float64(means_w[i, 0]) - campos[0]
         wy = np.float64(means_w[i, 1]) - campos[1]
         wz = np.float64(means_w[i, 2]) - campos[2]
@@ -347,25 +344,12 @@ def sh_to_rgb(means_w, R, campos, sh, degree, out):
         y = R[0, 1] * wx + R[1, 1] * wy + R[2, 1] * wz
         z = R[0, 2] * wx + R[1, 2] * wy + R[2, 2] * wz
         n = math.sqrt(x * x + y * y + z * z)
-        if n > 0:
-            x /= n
-            y /= n
-            z /= n
-        xx = x * x
-        yy = y * y
-        zz = z * z
+        s = 1.0 / n if n > 0 else 1.0
+        sh_basis(degree, x * s, y * s, z * s, b)
         for ch in range(3):
-            v = np.float64(out[i, ch]) - C1 * y * sh[i, 1, ch] + C1 * z * sh[i, 2, ch] - C1 * x * sh[i, 3, ch]
-            if degree > 1:
-                v += (C2[0] * x * y * sh[i, 4, ch] + C2[1] * y * z * sh[i, 5, ch]
-                      + C2[2] * (2.0 * zz - xx - yy) * sh[i, 6, ch] + C2[3] * x * z * sh[i, 7, ch]
-                      + C2[4] * (xx - yy) * sh[i, 8, ch])
-            if degree > 2:
-                v += (C3[0] * y * (3.0 * xx - yy) * sh[i, 9, ch] + C3[1] * x * y * z * sh[i, 10, ch]
-                      + C3[2] * y * (4.0 * zz - xx - yy) * sh[i, 11, ch]
-                      + C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[i, 12, ch]
-                      + C3[4] * x * (4.0 * zz - xx - yy) * sh[i, 13, ch]
-                      + C3[5] * z * (xx - yy) * sh[i, 14, ch] + C3[6] * x * (xx - 3.0 * yy) * sh[i, 15, ch])
+            v = 0.0
+            for k in range(K):
+                v += b[k] * np.float64(sh[i, k, ch])
             out[i, ch] = max(v + 0.5, 0.0)
 
 
@@ -415,7 +399,7 @@ def bin_tiles(keys, rects, dirty, tiles_x, tiles_y, slices, active):
     Gaussians are K objects' consecutive ranges ``slices`` [K+1], and only the objects flagged in
     ``active`` [K] are looked at (the others must reach no flagged tile). Returns ``tile_offsets
     [C*T+1]`` (CSR; tiles not flagged get empty lists) and ``tile_gauss`` int32. A flagged tile's list
-    equals the one ``_numba_raster.bin_gaussians`` builds from ``depth_order`` (depth order, ties in
+    equals the one ``_numba_bins.bin_gaussians`` builds from ``depth_order`` (depth order, ties in
     index order): the same stable sort, applied to the Gaussians that reach a flagged tile only (a
     stable sort of a subsequence is the subsequence of the stable sort).
     """

@@ -32,7 +32,8 @@ def _unit(dirs, c, i):
 
 
 @nb.njit(cache=True, inline="always")
-def _basis(degree, x, y, z, b):
+def sh_basis(degree, x, y, z, b):
+    """b[:(degree+1)^2] = the basis at the unit direction (x, y, z) (3DGS order and signs)."""
     b[0] = C0
     if degree >= 1:
         b[1] = -C1 * y
@@ -90,7 +91,7 @@ def sh_forward(degree, dirs, coeffs, out):
         for i in range(chunk * _CHUNK, min(N, (chunk + 1) * _CHUNK)):
             for c in range(C):
                 x, y, z, _ = _unit(dirs, c, i)
-                _basis(degree, x, y, z, b)
+                sh_basis(degree, x, y, z, b)
                 for ch in range(3):
                     v = 0.0
                     for k in range(K):
@@ -112,7 +113,7 @@ def sh_backward(degree, dirs, coeffs, v_out, v_dirs, v_coeffs):
             acc[:] = 0.0
             for c in range(C):
                 x, y, z, n = _unit(dirs, c, i)
-                _basis(degree, x, y, z, b)
+                sh_basis(degree, x, y, z, b)
                 v0 = np.float64(v_out[c, i, 0])
                 v1 = np.float64(v_out[c, i, 1])
                 v2 = np.float64(v_out[c, i, 2])

@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.lighting_ceiling", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, required=True, help="JSON file to write")
     p.add_argument("--scenes", nargs="+", default=["two_blocks"], help="synthetic scene names (default two_blocks)")
-    p.add_argument("--lighting", nargs="+", default=["soft", "spot"], choices=["soft", "spot"])
+    p.add_argument("--lighting", nargs="+", default=["soft", "spot"], choices=["soft", "spot", "headlight"])
     p.add_argument("--reference", default="state1", help="state whose shading the objects keep (default state1)")
     p.add_argument("--size", type=int, default=128)
     args = p.parse_args(argv)

@@ -464,22 +464,71 @@ def test_orbit_is_smooth():
 
 
 def test_shadows_flag(spec):
+    from train_world.synth.build import CAMERA_LIGHT
+
     assert not build_scene(spec).model.light_castshadow.any()
-    assert build_scene(spec, shadows=True).model.light_castshadow.all()
+    m = build_scene(spec, shadows=True).model
+    cam = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_LIGHT, CAMERA_LIGHT)
+    # the world-fixed lights cast shadows; the camera's own light would only cast them out of its sight
+    assert cam >= 0 and np.delete(m.light_castshadow, cam).all() and not m.light_castshadow[cam]
 
 
 def test_lighting_presets(spec):
-    from train_world.synth.build import LIGHTING
-    from train_world.synth.generate import GenerateConfig
+    from train_world.synth.build import CAMERA_LIGHT, LIGHTING
 
-    soft, spot = build_scene(spec).model, build_scene(spec, lighting="spot").model
-    assert soft.vis.headlight.diffuse[0] == LIGHTING["soft"][1] > spot.vis.headlight.diffuse[0] == LIGHTING["spot"][1]
-    np.testing.assert_allclose(soft.light_diffuse, LIGHTING["soft"][0] * spot.light_diffuse, rtol=1e-6)
-    assert soft.light_diffuse.max() < spot.light_diffuse.max()
+    models = {n: build_scene(spec, lighting=n).model for n in ("soft", "spot", "headlight")}
+    fixed = {}
+    for name, m in models.items():
+        cam = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_LIGHT, CAMERA_LIGHT)
+        fixed[name] = np.delete(m.light_diffuse, cam, axis=0) if cam >= 0 else m.light_diffuse
+        if name == "headlight":  # generator 1.2's soft: MuJoCo's directional headlight, no camera point light
+            assert cam < 0 and m.vis.headlight.diffuse[0] == LIGHTING[name][1]
+            continue
+        # a positional light of the preset's strength, no shadows, no cone; the headlight only adds ambient
+        assert cam >= 0 and m.light_type[cam] == mujoco.mjtLightType.mjLIGHT_SPOT and not m.light_castshadow[cam]
+        np.testing.assert_allclose(m.light_diffuse[cam], LIGHTING[name][1])
+        assert m.vis.headlight.diffuse[0] == 0.0 and m.vis.headlight.ambient[0] > 0
+    np.testing.assert_allclose(fixed["soft"], LIGHTING["soft"][0] * fixed["spot"], rtol=1e-6)
+    np.testing.assert_allclose(fixed["headlight"], fixed["soft"])
     with pytest.raises(ValueError, match="lighting"):
         build_scene(spec, lighting="disco")
     with pytest.raises(ValueError, match="lighting"):
         GenerateConfig(lighting="disco")
+
+
+def test_camera_light_shades_by_camera_position_not_axis():
+    """The camera light sits at the camera centre: panning the camera (same centre, the object off the image
+    centre) keeps an object's colour, which a view-direction model can represent; MuJoCo's directional
+    headlight shines along the camera axis, so panning changes the shading (what generator 1.3 removed)."""
+    from train_world.synth.build import CAMERA_LIGHT
+
+    spec = resolve_scene("two_blocks")  # its box is large and matte: shading shows
+    shift = {}
+    for lighting in ("soft", "headlight"):
+        built = build_scene(spec, 64, 64, lighting=lighting)
+        m = built.model
+        cam = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_LIGHT, CAMERA_LIGHT)
+        for j in range(m.nlight):  # only the camera-carried light (and ambient) stays on
+            if j != cam:
+                m.light_diffuse[j] = 0.0
+                m.light_specular[j] = 0.0
+        data = mujoco.MjData(m)
+        poses = sample_states(spec, rng_for(0, "states"), 0)["state1"]
+        set_object_poses(built, data, poses)
+        target = np.asarray(poses)[0, :3, 3]
+        eye = target + np.array([0.0, -0.45, 0.35])
+        means = []
+        with SceneRenderer(built, 64, 64) as r:
+            for off in ([0.0, 0.0, 0.0], [0.12, 0.0, 0.0], [0.0, 0.0, 0.1]):
+                c2w = look_at_opengl(eye, target + np.array(off))
+                rgb, ids, _ = r.render(data, c2w)
+                assert (ids == 1).sum() > 50
+                means.append(rgb[ids == 1].astype(float).mean(0))
+                if cam >= 0:
+                    np.testing.assert_allclose(data.light_xpos[cam], c2w[:3, 3], atol=1e-9)
+                    np.testing.assert_allclose(data.light_xdir[cam], -c2w[:3, 2], atol=1e-9)
+        shift[lighting] = max(np.abs(x - means[0]).max() for x in means[1:])
+    assert shift["soft"] < 3.0 < 8.0 < shift["headlight"]
 
 
 def test_test_orbit_sits_in_the_training_band():

@@ -5,13 +5,19 @@ bodies with a free joint (``qpos`` = position then quaternion w,x,y,z) so that p
 MuJoCo's collision detection can verify them; everything else (surface, floor, walls, props) is static
 background with object id 0. Shadows are off unless asked for (the method does not relight).
 
-Lighting (``lighting``): ``"soft"`` (default) lights mostly from the camera (MuJoCo's headlight) plus ambient,
-with weak world-fixed key lights; ``"spot"`` has the strong world-fixed spot lights of generator 1.0. Shading
-by a camera-carried light depends only on the surface relative to the camera, so it moves with an object
-exactly; world-fixed lights shade a moved or turned object differently, which the method does not model
-(DSG-World's stated limitation). On ``two_blocks`` a perfect world model is held to an object-pixel PSNR of
-27-29 dB by the ``spot`` lights and 39-41 dB by the ``soft`` ones (measured by carrying the lights along with
-each object; see the README).
+Lighting (``lighting``): ``"soft"`` (default) lights mostly from the camera plus ambient, with weak
+world-fixed key lights; ``"spot"`` has the strong world-fixed spot lights of generator 1.0. The camera light is
+a point light at the camera centre (generator 1.3; :data:`CAMERA_LIGHT`, moved with the camera per view), so
+the shading of a surface point depends only on where the camera is relative to it, i.e. on the viewing ray in
+the surface's own frame: a view-dependent colour (SH of the ray direction) represents it exactly, for a static
+surface and for a moved object alike. ``"headlight"`` is generator 1.2's ``soft``: the same strengths from
+MuJoCo's directional headlight, which shines along the camera *axis*; a point off the image centre is then lit
+by a direction that is not its viewing ray, and no function of the ray direction reproduces that across
+cameras (on ``five_small`` this cost single-state worlds 1.4 dB on held-out views and 2.0 dB on test states).
+World-fixed lights shade a moved or turned object differently, which the method does not model (DSG-World's
+stated limitation). On ``two_blocks`` a perfect world model is held to an object-pixel PSNR of 27-29 dB by the
+``spot`` lights and 39-41 dB by the ``soft`` ones (measured by carrying the lights along with each object; see
+the README).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from .shapes import geom_size, mesh_vertices, rest_rotation, resting_height, yaw
 from .spec import Appearance, LightSpec, SceneSpec, Shape  # noqa: E402
 from .textures import pattern_texture, surface_texture  # noqa: E402
 
-__all__ = ["LIGHTING", "RENDER_CAMERA", "BuiltScene", "build_scene", "set_object_poses"]
+__all__ = ["CAMERA_LIGHT", "LIGHTING", "RENDER_CAMERA", "BuiltScene", "build_scene", "set_object_poses"]
 
 RENDER_CAMERA = "render_cam"
 SURFACE_GEOM = "surface"
@@ -38,8 +44,11 @@ DEFAULT_LIGHTS = (
     LightSpec(pos=(0.6, -0.8, 2.0), dir=(-0.3, 0.4, -1.0), diffuse=(0.55, 0.55, 0.55)),
     LightSpec(pos=(-0.8, 0.6, 2.0), dir=(0.4, -0.3, -1.0), diffuse=(0.3, 0.3, 0.32)),
 )
-#: lighting presets: (scale of the world-fixed lights' diffuse and specular, headlight diffuse)
-LIGHTING = {"soft": (0.25, 0.75), "spot": (1.0, 0.35)}
+#: lighting presets: (scale of the world-fixed lights' diffuse and specular, camera light diffuse, whether the
+#: camera light is a point light at the camera centre (else MuJoCo's directional headlight))
+LIGHTING = {"soft": (0.25, 0.75, True), "spot": (1.0, 0.35, True), "headlight": (0.25, 0.75, False)}
+#: name of the point light that :class:`~train_world.synth.render.SceneRenderer` puts at the camera centre
+CAMERA_LIGHT = "camera_light"
 _GEOM_TYPES = {
     "box": mujoco.mjtGeom.mjGEOM_BOX,
     "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
@@ -79,7 +88,8 @@ class _Builder:
             raise ValueError(f"lighting must be one of {sorted(LIGHTING)}, got {lighting!r}")
         self.scene = spec
         self.shadows = shadows
-        self.fixed_scale, head = LIGHTING[lighting]
+        self.fixed_scale, head, point = LIGHTING[lighting]
+        self.camera_light = head if point else 0.0
         self.ms = mujoco.MjSpec()
         self.ms.modelname = f"dsg_synth_{spec.name}"
         self._n_assets = 0
@@ -87,7 +97,7 @@ class _Builder:
         vis.global_.offwidth = max(int(width), 64)
         vis.global_.offheight = max(int(height), 64)
         vis.headlight.ambient = [0.25, 0.25, 0.25]
-        vis.headlight.diffuse = [head, head, head]
+        vis.headlight.diffuse = [0.0, 0.0, 0.0] if point else [head, head, head]
         vis.headlight.specular = [0.0, 0.0, 0.0]
         vis.quality.shadowsize = 2048
         vis.map.znear = 0.01
@@ -237,6 +247,13 @@ class _Builder:
 
     def lights(self) -> None:
         wb = self.ms.worldbody
+        # placed at the camera for every view (SceneRenderer.set_camera); its shadows would fall out of its sight
+        if self.camera_light:
+            wb.add_light(
+                name=CAMERA_LIGHT, pos=[0.0, -1.0, 1.0], dir=[0.0, 1.0, -1.0],
+                diffuse=[self.camera_light] * 3, specular=[0.0] * 3, ambient=[0.0] * 3, castshadow=False,
+                cutoff=180.0, exponent=0.0, attenuation=[1.0, 0.0, 0.0], type=mujoco.mjtLightType.mjLIGHT_SPOT,
+            )
         specs = self.scene.lights or DEFAULT_LIGHTS
         for i, ls in enumerate(specs):
             wb.add_light(

@@ -42,9 +42,10 @@ def _parser() -> argparse.ArgumentParser:
         "--shadows", action="store_true", help="lights cast shadows (harder variant; off by default)"
     )
     p.add_argument(
-        "--lighting", choices=("soft", "spot"), default="soft",
-        help="soft (default): light mostly from the camera, weak fixed lights; spot: strong fixed spot lights "
-        "that shade moved objects differently (harder variant; generator 1.0's look)",
+        "--lighting", choices=("soft", "spot", "headlight"), default="soft",
+        help="soft (default): light mostly from a point light at the camera, weak fixed lights; spot: strong "
+        "fixed spot lights that shade moved objects differently (harder variant; generator 1.0's look); "
+        "headlight: generator 1.2's soft (MuJoCo's directional headlight instead of the camera point light)",
     )
     p.add_argument(
         "--supersample", type=int, default=4,

@@ -27,7 +27,7 @@ from ..data.format import (  # noqa: E402
     staged_directory,
     write_state_views,
 )
-from .build import build_scene, set_object_poses  # noqa: E402
+from .build import LIGHTING, build_scene, set_object_poses  # noqa: E402
 from .cameras import orbit_c2w  # noqa: E402
 from .render import SceneRenderer, depth_to_png_units  # noqa: E402
 from .spec import SceneSpec, resolve_scene  # noqa: E402
@@ -37,13 +37,15 @@ __all__ = ["GENERATOR_VERSION", "GenerateConfig", "generate_scene", "rng_for"]
 
 # 1.1: "soft" lighting and test cameras in the training band by default
 # 1.2: RGB supersampled 4x4 per pixel by default (area-integrated like a camera sensor, no texture aliasing)
-GENERATOR_VERSION = "1.2"
+# 1.3: the camera light of "soft" and "spot" is a point light at the camera centre, not MuJoCo's directional
+#      headlight (1.2's "soft" is now "headlight"; see train_world.synth.build)
+GENERATOR_VERSION = "1.3"
 
 
 @dataclass(frozen=True)
 class GenerateConfig:
     """What to generate: image size, training views per training state, held-out test cameras shared by the
-    ``test_states`` test states, whether lights cast shadows, the lighting preset (``"soft"`` or ``"spot"``,
+    ``test_states`` test states, whether lights cast shadows, the lighting preset (``"soft"``, ``"spot"`` or ``"headlight"``,
     :data:`~train_world.synth.build.LIGHTING`) and the RGB supersampling factor per axis (``supersample``:
     each pixel is the mean of ``supersample**2`` point samples; 1 = point-sampled, generator 1.1's look)."""
 
@@ -66,8 +68,8 @@ class GenerateConfig:
             raise ValueError("GenerateConfig.test_views and test_states must be >= 0")
         if int(self.supersample) != self.supersample or not 1 <= self.supersample <= 16:
             raise ValueError(f"GenerateConfig.supersample must be an integer in 1..16, got {self.supersample!r}")
-        if self.lighting not in ("soft", "spot"):
-            raise ValueError(f"GenerateConfig.lighting must be 'soft' or 'spot', got {self.lighting!r}")
+        if self.lighting not in LIGHTING:
+            raise ValueError(f"GenerateConfig.lighting must be one of {sorted(LIGHTING)}, got {self.lighting!r}")
         if (self.test_states > 0) != (self.test_views > 0):
             raise ValueError("test states need test views (and vice versa): set both > 0 or both 0")
 

@@ -20,7 +20,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .build import BuiltScene  # noqa: E402
+from .build import CAMERA_LIGHT, BuiltScene  # noqa: E402
 
 __all__ = ["SceneRenderer", "depth_to_png_units"]
 
@@ -54,6 +54,7 @@ class SceneRenderer:
                 f"{vis.offwidth}x{vis.offheight}: build the scene with width/height >= that size"
             )
         self.renderer = mujoco.Renderer(built.model, self.height, self.width)
+        self._camera_light = mujoco.mj_name2id(built.model, mujoco.mjtObj.mjOBJ_LIGHT, CAMERA_LIGHT)
         self._rgb_renderer = (
             mujoco.Renderer(built.model, need[1], need[0]) if self.supersample > 1 else self.renderer
         )
@@ -74,6 +75,9 @@ class SceneRenderer:
         q = np.zeros(4)
         mujoco.mju_mat2Quat(q, np.ascontiguousarray(c2w[:3, :3]).ravel())
         m.cam_quat[cid] = q
+        if self._camera_light >= 0:  # the point light at the camera centre, facing along its axis
+            m.light_pos[self._camera_light] = c2w[:3, 3]
+            m.light_dir[self._camera_light] = -c2w[:3, 2]
         mujoco.mj_camlight(m, data)
 
     def render(

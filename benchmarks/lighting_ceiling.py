@@ -1,13 +1,15 @@
 """What world-fixed lights cost a perfect world model: ``python -m benchmarks.lighting_ceiling --out L.json``.
 
 DSG-World moves each object's Gaussians rigidly, so an object keeps the shading it had when it was captured.
-MuJoCo's world-fixed lights shade a moved or turned object differently; the camera-carried headlight does not
+MuJoCo's world-fixed lights shade a moved or turned object differently; the camera-carried light does not
 (its shading depends only on the surface relative to the camera). This benchmark renders, for every test state
 of a synthetic scene, the ground truth and an *ideal* world-model image in which each object keeps its
 ``--reference`` state's shading: the world-fixed lights are carried along with the object by its rigid motion
 from the reference pose to the test pose, and the object's pixels are taken from that render. The PSNR
 between the two, over object pixels and over whole images, is the ceiling that no rigid-appearance world model
-can pass on that scene and lighting.
+can pass on that scene and lighting. Both renders share the cameras, so it does not see what MuJoCo's directional
+headlight (``--lighting headlight``, generator 1.2's ``soft``) costs: shading along the camera axis, which a
+colour that depends on the viewing ray alone cannot follow (see ``train_world.synth.build``).
 """
 
 from __future__ import annotations

@@ -83,7 +83,7 @@ def test_mip_training_writes_an_antialiased_world_that_renders_as_trained(tiny, 
     path = t.write_world(tmp_path / "mip.dsgw")
     w = load_world(path)
     assert w.splat_options == {"rasterize_mode": "antialiased", "eps2d": 0.1}
-    assert w.metadata["train_config"]["preset"]["filter3d_scale"] == 0.2
+    assert w.metadata["train_config"]["preset"]["filter3d_scale"] == MIP_FILTER3D_SCALE
     with torch.no_grad():
         out = t.field.render(data.viewmats[:2], data.Ks[:2], data.width, data.height, background=t.background,
                              with_features=False)
@@ -137,10 +137,12 @@ def test_resume_with_the_3d_filter_gives_the_same_world(tiny, tmp_path):
     assert classic.field.filter3d is None and classic.world().metadata["rasterize_mode"] == "classic"
 
 
-def test_presets_default_to_mip_except_quick():
+def test_presets_default_to_the_antialiased_rasterizer_except_quick():
     for name in ("default", "paper"):
         p = get_preset(name)
-        assert (p.rasterize_mode, p.eps2d, p.filter3d_scale) == ("antialiased", 0.1, MIP_FILTER3D_SCALE)
+        assert (p.rasterize_mode, p.eps2d, p.filter3d_scale) == ("antialiased", 0.1, 0.0)
+        full = get_preset(name, **mip_overrides(True))  # --mip: Mip-Splatting's 3D filter too
+        assert (full.rasterize_mode, full.eps2d, full.filter3d_scale) == ("antialiased", 0.1, MIP_FILTER3D_SCALE)
     q = get_preset("quick")
     assert (q.rasterize_mode, q.eps2d, q.filter3d_scale) == ("classic", 0.3, 0.0)
     # a configuration stored before these fields existed reads back as the classic renderer it was trained with

@@ -77,8 +77,8 @@ def add_mip_argument(p: argparse.ArgumentParser) -> None:
         "--mip",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="Mip-Splatting filters: the antialiased rasterizer (2D Mip filter) and the 3D smoothing filter, "
-        "for worlds that render correctly when objects move nearer or farther (default: the preset's)",
+        help="--mip: all of Mip-Splatting (antialiased rasterizer, 2D Mip filter, 3D smoothing filter 0.2); "
+        "--no-mip: 3DGS's classic rasterizer (default: the preset's; default/paper: antialiased, no 3D filter)",
     )
 
 

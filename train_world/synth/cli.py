@@ -44,7 +44,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--lighting", choices=("soft", "spot", "headlight"), default="soft",
         help="soft (default): light mostly from a point light at the camera, weak fixed lights; spot: strong "
-        "fixed spot lights that shade moved objects differently (harder variant; generator 1.0's look); "
+        "fixed spot lights that shade moved objects differently (harder variant; generator 1.0's fixed lights); "
         "headlight: generator 1.2's soft (MuJoCo's directional headlight instead of the camera point light)",
     )
     p.add_argument(

@@ -67,6 +67,17 @@ def depth_order(keys, rects):
     return order, counts
 
 
+@nb.njit(cache=True, inline="always")
+def _tile_rect(rects, c, i):
+    """Tile range ``(tx0, tx1, ty0, ty1)`` (inclusive) of Gaussian ``i``'s pixel rectangle in camera ``c``;
+    ``tx1 < tx0`` when the rectangle is empty."""
+    x0 = rects[c, i, 0]
+    x1 = rects[c, i, 1]
+    if x1 < x0:
+        return 0, -1, 0, -1
+    return x0 // TILE, x1 // TILE, rects[c, i, 2] // TILE, rects[c, i, 3] // TILE
+
+
 @nb.njit(cache=True)
 def bin_gaussians(rects, order, nvis, tiles_x, tiles_y):
     """Build per-tile lists of Gaussians in depth order.
@@ -83,14 +94,9 @@ def bin_gaussians(rects, order, nvis, tiles_x, tiles_y):
     gcounts = np.zeros(C * N + 1, dtype=np.int64)
     for c in range(C):
         for i in range(N):
-            x0 = rects[c, i, 0]
-            x1 = rects[c, i, 1]
-            if x1 < x0:
+            tx0, tx1, ty0, ty1 = _tile_rect(rects, c, i)
+            if tx1 < tx0:
                 continue
-            tx0 = x0 // TILE
-            tx1 = x1 // TILE
-            ty0 = rects[c, i, 2] // TILE
-            ty1 = rects[c, i, 3] // TILE
             gcounts[c * N + i + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
             for ty in range(ty0, ty1 + 1):
                 for tx in range(tx0, tx1 + 1):
@@ -107,14 +113,9 @@ def bin_gaussians(rects, order, nvis, tiles_x, tiles_y):
     for c in range(C):
         for k in range(nvis[c]):
             i = order[c, k]
-            x0 = rects[c, i, 0]
-            x1 = rects[c, i, 1]
-            if x1 < x0:
+            tx0, tx1, ty0, ty1 = _tile_rect(rects, c, i)
+            if tx1 < tx0:
                 continue
-            tx0 = x0 // TILE
-            tx1 = x1 // TILE
-            ty0 = rects[c, i, 2] // TILE
-            ty1 = rects[c, i, 3] // TILE
             for ty in range(ty0, ty1 + 1):
                 for tx in range(tx0, tx1 + 1):
                     t = c * T + ty * tiles_x + tx

@@ -329,3 +329,29 @@ def test_dual_non_finite_gradient_stops_before_the_fields_change(tiny, tmp_path)
     hook.remove()
     assert tr.step == 25
     assert all(torch.equal(v, before[k]) for k, v in tr.t2.field.params().items())
+
+
+def test_two_state_training_has_its_own_step_count_and_field_cap():
+    import dataclasses
+
+    from train_world.dual import cli as dual_cli
+    from train_world.recon.presets import get_preset
+
+    p = get_preset("default")
+    assert p.dual_iterations is not None and p.dual_iterations < p.iterations
+    assert p.dual_max_gaussians is not None and p.dual_max_gaussians < p.max_gaussians
+    d = dual_cli.scaled_preset("default", two_state=True)
+    assert (d.iterations, d.max_gaussians) == (p.dual_iterations, p.dual_max_gaussians)
+    f = p.dual_iterations / p.iterations  # the whole schedule follows the step count
+    assert (d.densify_until, d.reset_every) == (round(p.densify_until * f), round(p.reset_every * f))
+    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(["cap", "--out", "x"]))
+    assert cfg.base.preset == d  # what dsg-train on two states uses by default
+    # explicit values win; single-state training and presets without two-state values are unchanged
+    e = dual_cli.scaled_preset("default", 1000, 5000, two_state=True)
+    assert (e.iterations, e.max_gaussians) == (1000, 5000)
+    assert dual_cli.scaled_preset("default") == p
+    assert dual_cli.scaled_preset("quick", two_state=True) == get_preset("quick")
+    with pytest.raises(ValueError, match="dual_iterations"):
+        dataclasses.replace(p, dual_iterations=0)
+    with pytest.raises(ValueError, match="--iterations"):
+        dual_cli.scaled_preset("default", 0)

@@ -111,7 +111,7 @@ def run_suite(
     iterations: int | None = None,
     synth_args: list[str] | None = None,
     seed: int = 0,
-    pseudo_every: int = 1,
+    pseudo_every: int | None = None,
     max_gaussians: int | None = None,
     mip: bool | None = None,
 ) -> dict[str, Any]:
@@ -119,10 +119,14 @@ def run_suite(
     from train_world.data import load_capture
     from train_world.evaluate import evaluate
 
+    from train_world.recon.presets import get_preset
+
     out = Path(out)
     py = sys.executable
-    results: dict[str, Any] = {"preset": preset, "iterations": iterations, "mip": mip, "scenes": {},
-                               "methods": methods}
+    if max_gaussians is None:  # baseline (a) gets the two-state cap too: the same field size as each of ours
+        max_gaussians = get_preset(preset).dual_max_gaussians
+    results: dict[str, Any] = {"preset": preset, "iterations": iterations, "mip": mip,
+                               "max_gaussians": max_gaussians, "scenes": {}, "methods": methods}
     for scene in scenes:
         cap = out / "data" / scene
         logs = out / "logs" / scene
@@ -156,7 +160,7 @@ def run_suite(
         single = [py, "-m", "train_world.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed),
                   "--resume", *it]
         dual = [py, "-m", "train_world.dual.cli", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
-                "--pseudo-every", str(pseudo_every), "--resume", *it]
+                *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]), "--resume", *it]
         recon_ckpt, recon_info = wdir / "recon.ckpt", wdir / "recon.json"
         runs: dict[str, Any] = {}
         for m in methods:
@@ -275,8 +279,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default="a,b,B,BC,BCP", help="subset of a,b,B,BC,BCP (default: all)")
     p.add_argument("--preset", default="default")
     p.add_argument("--iterations", type=int, help="steps per training (schedules scaled)")
-    p.add_argument("--pseudo-every", type=int, default=1)
-    p.add_argument("--max-gaussians", type=int, help="cap on each field's Gaussian count (default: preset's)")
+    p.add_argument("--pseudo-every", type=int, help="pseudo-state loss every n-th joint step (default: dsg-train's)")
+    p.add_argument("--max-gaussians", type=int,
+                   help="cap on each field's Gaussian count, baseline (a) too (default: the preset's two-state cap)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
                    help="train every world with (or without) the Mip-Splatting filters (default: the preset's)")

@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from . import _numba_backend, _torch_backend
+from .finite import first_nonfinite
 from ..splat_options import DEFAULT_EPS2D, RASTERIZE_MODES, check_splat_options  # noqa: F401  (re-exported)
 from .sh import _spherical_harmonics_torch, num_sh_bases, spherical_harmonics
 
@@ -25,10 +26,9 @@ def _check_tensor(name: str, t: Any, shape: tuple, dtype: torch.dtype | None = N
     if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
         want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
         raise ValueError(f"{name} must have shape {want}, got {list(t.shape)}")
-    # One reduction: amax propagates NaN and keeps Inf, so a finite result means all finite.
-    if t.numel() and not bool(torch.isfinite(t.detach().abs().amax())):
-        bad = torch.nonzero(~torch.isfinite(t))[0].tolist()
-        raise ValueError(f"{name} has a non-finite value (NaN or Inf) at index {bad}")
+    bad = first_nonfinite(t)
+    if bad is not None:
+        raise ValueError(f"{name} has a non-finite value (NaN or Inf) at index {list(bad)}")
     return t
 
 

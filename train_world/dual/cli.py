@@ -40,16 +40,25 @@ _SCHEDULE = (
 )
 
 
-def scaled_preset(name: str, iterations: int | None = None, max_gaussians: int | None = None) -> Preset:
+def scaled_preset(
+    name: str, iterations: int | None = None, max_gaussians: int | None = None, *, two_state: bool = False
+) -> Preset:
     """Preset ``name``; with ``iterations``, every schedule step count scaled by ``iterations / preset's``
-    (so an opacity reset never lands at the end of a shortened run); ``max_gaussians``: the field size cap."""
+    (so an opacity reset never lands at the end of a shortened run); ``max_gaussians``: the field size cap.
+    ``two_state``: the defaults are the preset's two-state step count and cap (``dual_iterations``,
+    ``dual_max_gaussians``) where it has them."""
     p = get_preset(name)
+    if two_state:
+        iterations = p.dual_iterations if iterations is None else iterations
+        max_gaussians = p.dual_max_gaussians if max_gaussians is None else max_gaussians
     if max_gaussians is not None:
         if max_gaussians < 1000:
             raise ValueError(f"--max-gaussians must be at least 1000, got {max_gaussians}")
         p = dataclasses.replace(p, max_gaussians=int(max_gaussians))
     if iterations is None or iterations == p.iterations:
         return p
+    if iterations < 1:
+        raise ValueError(f"--iterations must be at least 1, got {iterations}")
     f = iterations / p.iterations
     return dataclasses.replace(
         p,
@@ -93,8 +102,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("capture", type=Path, help="capture folder with state1 and state2 (scene.json)")
     p.add_argument("--out", type=Path, required=True, help="world file to write")
     p.add_argument("--preset", choices=sorted(PRESETS), default="default", help="default: default")
-    p.add_argument("--iterations", type=int, help="steps (both fields per step); scales the schedule")
-    p.add_argument("--max-gaussians", type=int, help="cap on each field's Gaussian count (default: preset's)")
+    p.add_argument(
+        "--iterations", type=int, help="steps (both fields per step; default: the preset's two-state count); "
+        "scales the schedule"
+    )
+    p.add_argument(
+        "--max-gaussians", type=int, help="cap on each field's Gaussian count (default: the preset's two-state cap)"
+    )
     p.add_argument("--downscale", type=int, default=1)
     p.add_argument("--holdout-every", type=int, default=8, help="hold out every n-th view of each state")
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
@@ -110,7 +124,9 @@ def _parser() -> argparse.ArgumentParser:
         "--tau", type=float, default=0.02, help="co-pruning distance, scene units (default 0.02 m)"
     )
     p.add_argument("--prune-every", type=int, default=500, help="co-pruning interval in joint steps")
-    p.add_argument("--pseudo-every", type=int, default=1, help="pseudo-state loss every n-th joint step")
+    p.add_argument(
+        "--pseudo-every", type=int, default=2, help="pseudo-state loss every n-th joint step (default 2; paper: 1)"
+    )
     p.add_argument("--checkpoint", type=Path, help="checkpoint file (default: WORLD.ckpt)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
     p.add_argument(
@@ -131,8 +147,9 @@ def _parser() -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace):
     from .trainer import DualConfig
 
-    preset = dataclasses.replace(scaled_preset(args.preset, args.iterations, args.max_gaussians),
-                                 **mip_overrides(args.mip))
+    preset = dataclasses.replace(
+        scaled_preset(args.preset, args.iterations, args.max_gaussians, two_state=True), **mip_overrides(args.mip)
+    )
     base = TrainConfig(
         preset=preset,
         seed=args.seed,

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from dsg_gym.splat.finite import all_finite
 from dsg_gym.world import Cameras, World
 
 from ..world_writer import build_world, write_world
@@ -56,7 +57,7 @@ class TrainingDiverged(RuntimeError):
 def check_gradients(named, step: int, last_checkpoint: int | None) -> None:
     """Raise :class:`TrainingDiverged` naming every parameter in ``named`` ``[(name, tensor)]`` whose
     gradient has a NaN or Inf (called between ``backward`` and the optimiser steps: nothing has changed)."""
-    bad = [k for k, t in named if t.grad is not None and not bool(torch.isfinite(t.grad).all())]
+    bad = [k for k, t in named if t.grad is not None and not all_finite(t.grad)]
     if bad:
         raise TrainingDiverged(
             f"gradient of {', '.join(bad)} became non-finite at step {step} (parameters unchanged); "

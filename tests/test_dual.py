@@ -48,6 +48,44 @@ def test_object_transfer_moves_objects_and_keeps_background():
     assert torch.allclose(m_o[0], torch.tensor(P2[0, :3, 3], dtype=torch.float32), atol=1e-6)
     with pytest.raises(ValueError):
         gaussian_transforms(torch.tensor([3]), T)
+    # the object-rows-only callable agrees with the per-Gaussian matrices; background rows are untouched bits
+    from train_world.recon.field import rigid_transform_gaussians
+
+    tr = ObjectTransfer(labels, T)
+    m2, q2 = tr(means, quats)
+    mr, qr = rigid_transform_gaussians(means, quats, M)
+    assert torch.allclose(m2, mr, atol=1e-6) and torch.allclose(q2 * torch.sign(q2[:, :1]), qr * torch.sign(qr[:, :1]),
+                                                                atol=1e-6)
+    assert torch.equal(m2[[0, 4]], means[[0, 4]]) and torch.equal(q2[[0, 4]], quats[[0, 4]])
+    dirs = torch.randn(2, 5, 3, generator=g)
+    assert torch.allclose(tr.rotate_dirs(dirs), torch.einsum("cnj,nji->cni", dirs, tr.rotations()), atol=1e-6)
+    empty = ObjectTransfer(torch.zeros(5, dtype=torch.int64), T)  # no object Gaussian: nothing moves
+    assert empty(means, quats)[0] is means and empty.rotate_dirs(dirs) is dirs
+
+
+def test_object_transfer_renders_like_per_gaussian_matrices_with_sh_turning():
+    g = torch.Generator().manual_seed(3)
+    n = 60
+    pts = torch.randn(n, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, 1.5])
+    f = SegmentedField.from_points(pts, torch.rand(n, 3, generator=g), torch.full((n,), 0.04), sh_degree=2,
+                                   opacity=0.7, features=torch.randn(n, 16, generator=g))
+    with torch.no_grad():
+        f.shN.normal_(0.0, 0.2, generator=g)  # view-dependent colour, so turning the SH matters
+    labels = (torch.arange(n) % 3).long()  # background, object 1, object 2
+    T = relative_transforms(np.stack([_pose(0.0, 0.0), _pose(0.05, 0.0)]),
+                            np.stack([_pose(0.03, 0.02, yaw=0.7), _pose(-0.02, 0.04, yaw=-1.1)]))
+    vm, K = _camera()
+    outs, grads = [], []
+    for transform in (ObjectTransfer(labels, T), gaussian_transforms(labels, T)):
+        for p in f.params().values():
+            p.grad = None
+        o = f.render(vm, K, 32, 32, transform=transform, sh_degree=2)
+        (o.rgb.square().sum() + o.features.square().sum()).backward()
+        outs.append(o.rgb.detach())
+        grads.append({k: v.grad.clone() for k, v in f.params().items()})
+    assert torch.allclose(outs[0], outs[1], atol=1e-5)
+    for k in grads[0]:
+        assert torch.allclose(grads[0][k], grads[1][k], atol=1e-4, rtol=1e-3), k
 
 
 # ----------------------------------------------------------------------------------- losses

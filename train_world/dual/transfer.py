@@ -56,7 +56,8 @@ def gaussian_transforms(labels: torch.Tensor, object_T: torch.Tensor) -> torch.T
 class ObjectTransfer:
     """``T`` as a callable ``(means, quats) -> (means, quats)`` for ``SegmentedField.render(transform=)``:
     the same result as :func:`gaussian_transforms` but with one rotation matrix and quaternion per class,
-    gathered by label (cheaper than ``N`` matrices and ``N`` matrix-to-quaternion conversions)."""
+    gathered by label, and only the object Gaussians touched (background rows pass through as they are:
+    cheaper than ``N`` matrices and ``N`` matrix-to-quaternion conversions)."""
 
     def __init__(self, labels: torch.Tensor, object_T: torch.Tensor):
         object_T = torch.as_tensor(object_T, dtype=torch.float32)
@@ -68,12 +69,25 @@ class ObjectTransfer:
         self.R = table[:, :3, :3]
         self.t = table[:, :3, 3]
         self.q = rotmat_to_quat(self.R)
+        self.moved = torch.nonzero(self.labels > 0).squeeze(1)  # rows of object Gaussians
+        self._moved_labels = self.labels[self.moved]
 
     def rotations(self) -> torch.Tensor:
         """Each Gaussian's rotation ``[N,3,3]`` (for turning its SH colour with it)."""
         return self.R[self.labels]
 
+    def rotate_dirs(self, dirs: torch.Tensor) -> torch.Tensor:
+        """View directions ``[C,N,3]`` into each Gaussian's unmoved frame, ``R^T d`` (what
+        ``SegmentedField.render`` does with :meth:`rotations`, on the object rows only)."""
+        if self.moved.numel() == 0:
+            return dirs
+        turned = torch.einsum("cnj,nji->cni", dirs[:, self.moved], self.R[self._moved_labels])
+        return dirs.index_copy(1, self.moved, turned)
+
     def __call__(self, means: torch.Tensor, quats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        lab = self.labels
-        R, t, q = self.R[lab], self.t[lab], self.q[lab]
-        return torch.einsum("nij,nj->ni", R, means) + t, quat_multiply(q, quats)
+        idx = self.moved
+        if idx.numel() == 0:
+            return means, quats
+        lab = self._moved_labels
+        m = torch.einsum("nij,nj->ni", self.R[lab], means[idx]) + self.t[lab]
+        return means.index_copy(0, idx, m), quats.index_copy(0, idx, quat_multiply(self.q[lab], quats[idx]))

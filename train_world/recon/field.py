@@ -257,8 +257,8 @@ class SegmentedField(nn.Module):
         """Render RGB (+ identity features) into ``C`` cameras in one rasterizer call.
 
         ``transform``: a rigid transform ``[4,4]`` / ``[N,4,4]`` or a callable ``(means, quats) -> (means,
-        quats)`` (with a ``rotations()`` method ``[N,3,3]`` when SH colours should turn with it, as
-        :class:`train_world.dual.transfer.ObjectTransfer` has); ``sh_degree``: the SH degree used (default:
+        quats)``; SH colours turn with it when it has a ``rotate_dirs(dirs [C,N,3])`` or a ``rotations()``
+        ``[N,3,3]`` method, as :class:`train_world.dual.transfer.ObjectTransfer` has; ``sh_degree``: the SH degree used (default:
         the field's maximum); ``background``: ``[3]`` RGB (features get 0 behind); ``mask``: boolean ``[N]``
         selecting the Gaussians drawn.
         """
@@ -268,10 +268,14 @@ class SegmentedField(nn.Module):
         if mask is not None:
             means, quats, scales, opac, sh, feats = (t[mask] for t in (means, quats, scales, opac, sh, feats))
         rot = None  # rotation of each Gaussian by the transform: SH colours turn with the Gaussians
+        turn_dirs = None
         if transform is not None:
             if callable(transform) and not isinstance(transform, torch.Tensor):
                 means, quats = transform(means, quats)
-                rot = transform.rotations() if hasattr(transform, "rotations") else None
+                if mask is None and hasattr(transform, "rotate_dirs"):
+                    turn_dirs = transform.rotate_dirs
+                elif hasattr(transform, "rotations"):
+                    rot = transform.rotations()
             else:
                 T = transform if transform.dim() == 2 or mask is None else transform[mask]
                 means, quats = rigid_transform_gaussians(means, quats, T)
@@ -279,7 +283,9 @@ class SegmentedField(nn.Module):
         deg = self.max_sh_degree if sh_degree is None else min(int(sh_degree), self.max_sh_degree)
         campos = torch.linalg.inv(viewmats.detach())[:, :3, 3]
         dirs = means[None, :, :] - campos[:, None, :]
-        if rot is not None and deg > 0:  # view direction into each Gaussian's own (unmoved) frame: R^T d
+        if turn_dirs is not None and deg > 0:
+            dirs = turn_dirs(dirs)
+        elif rot is not None and deg > 0:  # view direction into each Gaussian's own (unmoved) frame: R^T d
             dirs = dirs @ rot if rot.dim() == 2 else torch.einsum("cnj,nji->cni", dirs, rot)
         rgb = torch.clamp_min(spherical_harmonics(deg, dirs, sh[None]) + 0.5, 0.0)  # [C,N,3] (first k bases)
         C = viewmats.shape[0]

@@ -90,7 +90,8 @@ def knn_indices(points: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     k_eff = min(k + 1, len(points))
-    _, idx = cKDTree(points).query(queries, k=k_eff)
+    # an unbalanced tree without node compaction builds in about half the time, same neighbours
+    _, idx = cKDTree(points, balanced_tree=False, compact_nodes=False).query(queries, k=k_eff)
     idx = np.asarray(idx).reshape(len(queries), k_eff)
     return idx[:, 1:] if k_eff > 1 else idx
 

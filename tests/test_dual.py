@@ -393,3 +393,43 @@ def test_two_state_training_has_its_own_step_count_and_field_cap():
         dataclasses.replace(p, dual_iterations=0)
     with pytest.raises(ValueError, match="--iterations"):
         dual_cli.scaled_preset("default", 0)
+
+
+def test_knn_completion_fills_the_hole_not_the_table_seen_around_the_object():
+    from dsg_gym.gaussians import GaussianSet
+    from dsg_gym.world import World, WorldObject
+
+    # a table of flat Gaussians (2 mm grid) with a hole of radius 2 cm where a 3 cm-radius object stood: the
+    # ring 2-3 cm from its axis was seen around its base; the footprint dilated by 1 cm reaches 4 cm
+    g = np.arange(-0.1, 0.1001, 0.002)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    pts = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    pts = pts[np.linalg.norm(pts[:, :2], axis=1) > 0.02]
+    n = len(pts)
+    feats = np.zeros((n, 4), np.float32)
+    feats[:, 0] = 1.0
+    bg = GaussianSet.from_rgb(pts, np.tile([1.0, 0, 0, 0], (n, 1)), np.tile([0.0015, 0.0015, 0.0003], (n, 1)),
+                              np.full(n, 0.9), np.full((n, 3), 0.4), features=feats)
+    ang = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    obj_pts = np.concatenate([np.stack([0.03 * np.cos(ang), 0.03 * np.sin(ang), np.full(64, h)], 1)
+                              for h in (-0.02, 0.0, 0.02)])
+    m = len(obj_pts)
+    obj = GaussianSet.from_rgb(obj_pts, np.tile([1.0, 0, 0, 0], (m, 1)), np.full((m, 3), 0.003), np.full(m, 0.9),
+                               np.full((m, 3), 0.8), features=np.zeros((m, 4), np.float32))
+    pose = np.eye(4)[None].copy()
+    pose[0, 2, 3] = 0.02
+    world = World(background=bg, objects={1: WorldObject("can", obj)}, poses={"state1": pose}, cameras={},
+                  classifier_weight=np.zeros((2, 4), np.float32), classifier_bias=np.zeros(2, np.float32),
+                  metadata={"reference_state": "state1", "table": {"bounds": [[-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]]}})
+    done = knn_complete(world, spacing=0.004)
+    added = done.background.means[bg.num:]
+    r = np.linalg.norm(added[:, :2], axis=1)
+    assert len(added) > 0 and r.max() < 0.02 + 0.004 + 1e-6  # nothing over the table that was seen
+    hole = np.stack(np.meshgrid(np.linspace(-0.019, 0.019, 15), np.linspace(-0.019, 0.019, 15)), -1).reshape(-1, 2)
+    hole = hole[np.linalg.norm(hole, axis=1) < 0.019]
+    near = np.concatenate([added[:, :2], pts[np.linalg.norm(pts[:, :2], axis=1) < 0.03, :2]])
+    gap = np.min(np.linalg.norm(hole[:, None] - near[None], axis=-1), axis=1)
+    assert gap.max() < 0.004  # every point of the hole is within a grid step of a new or a table Gaussian
+    everywhere = knn_complete(world, spacing=0.004, covered_opacity=1.01)  # the old behaviour: all of it
+    r_all = np.linalg.norm(everywhere.background.means[bg.num:, :2], axis=1)
+    assert r_all.max() > 0.035 and len(r_all) > len(added)

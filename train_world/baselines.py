@@ -6,7 +6,8 @@
 * **(b) + kNN background completion** (:func:`knn_complete`): Gaussian Grouping's completion of the hole:
   new flat Gaussians on a regular grid over each object's footprint at the reference state (on the table
   plane), each taking colour, identity feature and opacity averaged over its ``k`` nearest background
-  Gaussians near the table plane outside the footprints.
+  Gaussians near the table plane outside the footprints. Only the hole is filled: a grid point with an
+  opaque table Gaussian within one grid step (table the capture saw around the object's base) gets none.
 
 Both are world files, so ``dsg-eval WORLD CAPTURE --state test_0`` evaluates them like the DSG-World result.
 """
@@ -80,13 +81,16 @@ def knn_complete(
     spacing: float | None = None,
     margin: float = 0.01,
     band: float = 0.01,
+    covered_opacity: float = 0.5,
 ) -> World:
     """Baseline (b): ``world`` with its reference-state object footprints filled (module docstring).
 
     ``spacing``: grid step (default: from the background Gaussians near the table, 2 x their median largest
     scale, clipped to [2 mm, 2 cm]); ``margin``: footprint dilation; ``band``: how far from the table plane
     (``metadata.table.bounds`` z, else the median height of the background near the footprints) a
-    background Gaussian may be to act as a source.
+    background Gaussian may be to act as a source; ``covered_opacity``: a grid point within one grid step (in
+    the table plane) of a background Gaussian in that band at least this opaque is already covered and gets
+    no new Gaussian (1.01: fill the whole dilated footprint).
     """
     from scipy.spatial import cKDTree
 
@@ -121,6 +125,10 @@ def knn_complete(
     gy = np.arange(lo[1], hi[1] + spacing, spacing)
     grid = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
     grid = grid[footprint_contains(fps, grid, margin)]
+    covering = (np.abs(bg.means[:, 2] - z0) < band) & (bg.opacities >= covered_opacity)
+    if len(grid) and covering.any():  # fill the hole only, not the table seen around the object
+        d, _ = cKDTree(xy[covering]).query(grid, k=1)
+        grid = grid[d > spacing]
     if len(grid) == 0:
         return world
     sidx = np.nonzero(src)[0]

@@ -118,7 +118,6 @@ def run_suite(
     """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``."""
     from train_world.data import load_capture
     from train_world.evaluate import evaluate
-
     from train_world.recon.presets import get_preset
 
     out = Path(out)

@@ -68,7 +68,7 @@ class Preset:
     eps2d: float = DEFAULT_EPS2D
     filter3d_scale: float = 0.0
     # two-state training (DSG-World, ``dsg-train`` on a capture with state1 and state2): every step trains
-    # both fields, and a joint step renders six views, so it has its own step count (the schedule above is
+    # both fields, and a joint step renders up to six views, so it has its own step count (the schedule above is
     # scaled to it) and field-size cap; None: the single-state ones
     dual_iterations: int | None = None
     dual_max_gaussians: int | None = None

@@ -53,3 +53,40 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
                            "--iterations", "40", "--max-gaussians", "4000", "--mip"]) == 0
         assert (wdir / f"{m}.dsgw").read_bytes() == data, m
         assert json.loads((wdir / f"{m}.json").read_text())["train_seconds"] == trained, m
+
+
+def _run(psnr: float, seconds: float) -> dict:
+    return {"mean": {"psnr": psnr, "ssim": 0.9, "mask_iou": 0.8}, "per_state": {}, "train": {"wall_seconds": seconds}}
+
+
+def _table(scenes: dict, **settings) -> dict:
+    base = {"preset": "default", "iterations": None, "mip": None, "max_gaussians": 60000, "synth_args": [],
+            "seed": 0, "pseudo_every": None, "provenance": {"commit": "abc"}}
+    base.update(settings)
+    methods = sorted({m for runs in scenes.values() for m in runs})
+    return {**base, "scenes": scenes, "methods": methods}
+
+
+def test_merge_joins_partial_runs_later_wins_and_checks_settings(tmp_path):
+    t1 = _table({"two_blocks": {"a": _run(30.0, 10), "BCP": _run(36.0, 20)}, "five_small": {"a": _run(32.0, 11)}})
+    t2 = _table({"two_blocks": {"BCP": _run(37.0, 21)}, "floor_rug": {"a": _run(24.0, 9), "BCP": _run(34.0, 19)}},
+                provenance={"commit": "def"})
+    p1, p2 = tmp_path / "r1.json", tmp_path / "r2.json"
+    p1.write_text(json.dumps(t1))
+    p2.write_text(json.dumps(t2))
+    out = tmp_path / "merged"
+    assert suite_main(["--out", str(out), "--merge", str(p1), str(p2)]) == 0
+    m = json.loads((out / "table.json").read_text())
+    assert list(m["scenes"]) == ["five_small", "floor_rug", "two_blocks"]  # the default scenes' order
+    assert m["methods"] == ["a", "BCP"]
+    assert m["scenes"]["two_blocks"]["BCP"]["mean"]["psnr"] == 37.0  # the later run replaced it
+    assert m["scenes"]["two_blocks"]["a"]["mean"]["psnr"] == 30.0  # the earlier run's other method is kept
+    assert [p["commit"] for p in m["provenance"]] == ["abc", "def"]
+    assert m["mean_over_scenes"]["a"]["psnr"] == np.mean([32.0, 24.0, 30.0])
+    md = (out / "table.md").read_text()
+    assert "(2 of 3 scenes)" in md and "**35.50 / 0.900 / 0.800** (2 of 3 scenes)" in md  # BCP lacks five_small
+    # settings that differ do not share a table; nothing is written
+    p3 = tmp_path / "r3.json"
+    p3.write_text(json.dumps(_table({"two_blocks": {"a": _run(1.0, 1)}}, iterations=2000)))
+    assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p1), str(p3)]) == 2
+    assert not (tmp_path / "bad").exists()

@@ -11,13 +11,17 @@ cameras); a method's figure per scene is the mean over its test states.
 
 Writes ``OUT/table.md`` (methods x scenes, PSNR / SSIM / mask IoU, and the mean over scenes), ``OUT/table.json``,
 ``OUT/grids/<scene>.png`` (rows: ground truth | baseline (a) | ours B+C+P, first test state), and per run
-``OUT/eval/<scene>/<method>/<state>/report.json``.
+``OUT/eval/<scene>/<method>/<state>/report.json``. ``table.json`` records the settings and the code's commit.
+
+The full suite takes hours; ``--merge`` joins the ``table.json`` files of runs that each did some of the
+scenes (made with the same settings) into one table, a later file's (scene, method) replacing an earlier one's.
 
 Examples::
 
     dsg-suite --out suite                                        # 7 scenes, default preset: hours
     dsg-suite --out /tmp/s --scenes two_blocks --iterations 2000 --methods a,b,BCP
     dsg-suite --out /tmp/s --scenes two_blocks --preset quick --width 32 --height 32 --views 16
+    dsg-suite --out merged --merge run1/table.json run2/table.json   # one table from two partial runs
 """
 
 from __future__ import annotations
@@ -36,7 +40,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["METHODS", "main", "run_suite"]
+__all__ = ["METHODS", "main", "merge_tables", "run_suite"]
+
+# settings that must agree for runs to share one table
+_SETTINGS = ("preset", "iterations", "mip", "max_gaussians", "synth_args", "seed", "pseudo_every")
 
 # name -> (label in the table, extra dsg-train options or None for baselines)
 METHODS: dict[str, tuple[str, list[str] | None]] = {
@@ -57,6 +64,51 @@ def _run_json(cmd: list[str], log: Path) -> dict[str, Any]:
     last = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
     out = json.loads(last[-1]) if last else {}
     out.setdefault("wall_seconds", round(time.perf_counter() - t0, 1))
+    return out
+
+
+def _provenance() -> dict[str, Any]:
+    """Which code made the numbers: the git commit (``-dirty`` with uncommitted changes) and the time."""
+    root = Path(__file__).resolve().parents[1]
+
+    def git(*a: str) -> str | None:
+        try:
+            r = subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True, timeout=30, check=False)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return r.stdout.strip() if r.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    if commit and git("status", "--porcelain", "--untracked-files=no"):
+        commit += "-dirty"
+    return {"commit": commit, "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "cpus": os.cpu_count()}
+
+
+def merge_tables(tables: list[dict[str, Any]]) -> dict[str, Any]:
+    """One table from several suite runs' ``table.json`` dictionaries (in order: a later run's (scene, method)
+    replaces an earlier one's). Raises ``ValueError`` naming the setting when the runs' settings differ."""
+    if not tables:
+        raise ValueError("merge needs at least one table.json")
+    first = tables[0]
+    for i, t in enumerate(tables[1:], start=1):
+        for k in _SETTINGS:
+            if t.get(k) != first.get(k):
+                raise ValueError(f"table {i} has {k}={t.get(k)!r} but table 0 has {first.get(k)!r}: "
+                                 "runs with different settings do not share a table")
+    out: dict[str, Any] = {k: first.get(k) for k in _SETTINGS}
+    out.update(scenes={}, methods=[], provenance=[])
+    for t in tables:
+        out["provenance"].extend(t["provenance"] if isinstance(t.get("provenance"), list) else [t.get("provenance")])
+        for m in t.get("methods", []):
+            if m not in out["methods"]:
+                out["methods"].append(m)
+        for scene, runs in t.get("scenes", {}).items():
+            out["scenes"].setdefault(scene, {}).update(runs)
+    known = _scene_list("all")  # the default scenes in their usual order, then any others
+    order = [s for s in known if s in out["scenes"]] + sorted(s for s in out["scenes"] if s not in known)
+    out["scenes"] = {s: out["scenes"][s] for s in order}
+    out["methods"] = [m for m in METHODS if m in out["methods"]]
     return out
 
 
@@ -125,7 +177,9 @@ def run_suite(
     if max_gaussians is None:  # baseline (a) gets the two-state cap too: the same field size as each of ours
         max_gaussians = get_preset(preset).dual_max_gaussians
     results: dict[str, Any] = {"preset": preset, "iterations": iterations, "mip": mip,
-                               "max_gaussians": max_gaussians, "scenes": {}, "methods": methods}
+                               "max_gaussians": max_gaussians, "synth_args": list(synth_args or []), "seed": seed,
+                               "pseudo_every": pseudo_every, "scenes": {}, "methods": methods,
+                               "provenance": _provenance()}
     for scene in scenes:
         cap = out / "data" / scene
         logs = out / "logs" / scene
@@ -255,12 +309,14 @@ def _write_tables(out: Path, results: dict[str, Any]) -> None:
                 else f"{_f(r['mean']['psnr'])} / {_f(r['mean']['ssim'], 3)} / {_f(r['mean']['mask_iou'], 3)}"
             )
         mo = mean_over[m]
-        cells.append(f"**{_f(mo['psnr'])} / {_f(mo['ssim'], 3)} / {_f(mo['mask_iou'], 3)}**")
+        n = sum(m in results["scenes"][s] for s in scenes)
+        part = "" if n == len(scenes) else f" ({n} of {len(scenes)} scenes)"
+        cells.append(f"**{_f(mo['psnr'])} / {_f(mo['ssim'], 3)} / {_f(mo['mask_iou'], 3)}**{part}")
         lines.append(f"| {METHODS[m][0]} | " + " | ".join(cells) + " |")
     lines += ["", "| method | scene | train s | peak RSS MB |", "| --- | --- | --- | --- |"]
     for s in scenes:
-        for m in methods:
-            t = results["scenes"][s].get(m, {}).get("train", {})
+        for m in (m for m in methods if m in results["scenes"][s]):
+            t = results["scenes"][s][m].get("train", {})
             lines.append(f"| {m} | {s} | {t.get('wall_seconds', '-')} | {t.get('peak_rss_mb', '-')} |")
     atomic_write_json(out / "table.json", results)
     atomic_write_bytes(out / "table.md", ("\n".join(lines) + "\n").encode("utf-8"))
@@ -274,6 +330,8 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--out", type=Path, required=True, help="output folder (captures, worlds, eval, tables)")
+    p.add_argument("--merge", type=Path, nargs="+", metavar="TABLE_JSON",
+                   help="train nothing: join these runs' table.json files into OUT/table.md and OUT/table.json")
     p.add_argument("--scenes", default="all", help="comma-separated scene names or 'all' (default)")
     p.add_argument("--methods", default="a,b,B,BC,BCP", help="subset of a,b,B,BC,BCP (default: all)")
     p.add_argument("--preset", default="default")
@@ -304,6 +362,16 @@ def main(argv: list[str] | None = None) -> int:
         v = getattr(args, name)
         if v is not None:
             synth += [f"--{name.replace('_', '-')}", str(v)]
+    if args.merge:
+        try:
+            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge])
+        except (OSError, ValueError, KeyError) as e:
+            print(f"dsg-suite: error: {e}", file=sys.stderr)
+            return 2
+        args.out.mkdir(parents=True, exist_ok=True)
+        _write_tables(args.out, r)
+        print(json.dumps({"out": str(args.out), "mean_over_scenes": r["mean_over_scenes"]}))
+        return 0
     try:
         r = run_suite(
             args.out,

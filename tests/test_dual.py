@@ -3,6 +3,7 @@ the merged world, the dsg-train dispatch and the comparison with baseline (a) on
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -17,6 +18,7 @@ from train_world.dual.merge import co_paste_background, co_prune_masks, object_f
 from train_world.dual.pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
 from train_world.dual.transfer import ObjectTransfer, gaussian_transforms, relative_transforms
 from train_world.evaluate import evaluate
+from train_world.evaluate import main as ev_main
 from train_world.recon import cli as recon_cli
 from train_world.recon.field import Classifier, SegmentedField
 
@@ -274,7 +276,7 @@ def test_co_pasting_fills_each_hole_from_the_other_state():
 # ----------------------------------------------------------------------------------- end to end
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    return tiny_capture(tmp_path_factory.mktemp("dual"), test_views=4)
+    return tiny_capture(tmp_path_factory.mktemp("dual"), test_views=4, test_states=2)
 
 
 def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
@@ -296,6 +298,20 @@ def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
     r_a = evaluate(base, tiny, tmp_path / "eval_a", state="test_0")["mean"]
     assert r_ours["psnr"] > r_a["psnr"] + 0.5, (r_ours, r_a)
     assert r_ours["ssim"] > r_a["ssim"] and r_ours["mask_iou"] > r_a["mask_iou"], (r_ours, r_a)
+    # dsg-eval on a two-state world evaluates every test state by default; their mean is the report's
+    assert ev_main([str(ours), str(tiny), "--out", str(tmp_path / "eval_all")]) == 0
+    rep = json.loads((tmp_path / "eval_all" / "report.json").read_text())
+    assert list(rep["states"]) == ["test_0", "test_1"] and rep["views"] == 8
+    assert rep["states"]["test_0"]["mean"] == r_ours
+    for k in ("psnr", "ssim", "mask_iou"):
+        assert rep["mean"][k] == np.mean([rep["states"][s]["mean"][k] for s in ("test_0", "test_1")])
+    assert (tmp_path / "eval_all" / "test_1" / "grid.png").is_file()
+    assert "| **mean** | 8 |" in (tmp_path / "eval_all" / "report.md").read_text()
+    # a single-state world keeps [recon]'s default, its held-out views; --state test asks for the test states
+    assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a1")]) == 0
+    assert json.loads((tmp_path / "eval_a1" / "report.json").read_text())["state"] == "state1"
+    assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a2"), "--state", "test"]) == 0
+    assert json.loads((tmp_path / "eval_a2" / "report.json").read_text())["states"]["test_0"]["mean"] == r_a
     # baseline (b): kNN completion adds flat background Gaussians inside the state-1 footprints
     wa = load_world(base)
     wb = knn_complete(wa)

@@ -8,6 +8,7 @@ import json
 import numpy as np
 
 from dsg_gym.world import load_world
+from train_world.evaluate import main as ev_main
 from train_world.suite import main as suite_main
 
 
@@ -89,4 +90,11 @@ def test_merge_joins_partial_runs_later_wins_and_checks_settings(tmp_path):
     p3 = tmp_path / "r3.json"
     p3.write_text(json.dumps(_table({"two_blocks": {"a": _run(1.0, 1)}}, iterations=2000)))
     assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p1), str(p3)]) == 2
+    assert not (tmp_path / "bad").exists()
+    # dsg-eval --suite is dsg-suite
+    assert ev_main(["--suite", "--out", str(tmp_path / "via_eval"), "--merge", str(p1), str(p2)]) == 0
+    assert json.loads((tmp_path / "via_eval" / "table.json").read_text())["scenes"] == m["scenes"]
+    # training options beside --merge would be ignored: refused instead
+    assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p1), "--scenes", "two_blocks"]) == 2
+    assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p1), "--no-mip"]) == 2
     assert not (tmp_path / "bad").exists()

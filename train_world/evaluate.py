@@ -9,12 +9,22 @@ world the views of its training state held out during training (every n-th view)
 views of that state, objects placed at that state's poses (taken from the capture's ``scene.json`` when the
 world does not hold them).
 
+``--state test`` evaluates at every test state of the capture (its ``"test"`` split), each as with
+``--state``; that is the default for a two-state (DSG-World) world on a capture that has test states.
+
 Writes ``DIR/report.json`` (per-view figures and ``"mean": {"psnr", "ssim", "mask_iou"}``), ``DIR/report.md``
-(a Markdown table) and ``DIR/grid.png`` (rows of ground truth | ours | error [| GT mask | our mask]).
+(a Markdown table) and ``DIR/grid.png`` (rows of ground truth | ours | error [| GT mask | our mask]). With
+``--state test`` each state's files go to ``DIR/<state>/`` and ``DIR/report.json`` holds each state's mean and
+their mean (``"mean"``, the same keys).
+
+``dsg-eval --suite [dsg-suite options]`` runs the DSG-World comparison on the default scenes
+(:mod:`train_world.suite`).
 
 Example::
 
     dsg-eval worlds/four_mixed.dsgw data/four_mixed --out eval/four_mixed
+    dsg-eval worlds/two_blocks.dsgw data/two_blocks --out eval/two_blocks --state test
+    dsg-eval --suite --out suite --scenes two_blocks,five_small
 """
 
 from __future__ import annotations
@@ -41,7 +51,7 @@ from train_world.data import CaptureError, load_capture
 from train_world.data.format import atomic_write_bytes, atomic_write_json, encode_png
 from train_world.recon.data import load_eval_views
 
-__all__ = ["evaluate", "main", "mask_iou", "render_gaussians"]
+__all__ = ["evaluate", "evaluate_test_states", "main", "mask_iou", "render_gaussians", "test_states"]
 
 _PALETTE = np.array(
     [
@@ -259,6 +269,43 @@ def evaluate(
     return report
 
 
+def test_states(capture: str | Path) -> list[str]:
+    """The states of the capture's ``"test"`` split, in the capture's order."""
+    splits = load_capture(capture, states=[], load_depth=False).splits
+    return [s for s, split in splits.items() if split == "test"]
+
+
+def evaluate_test_states(world_path: str | Path, capture: str | Path, out_dir: str | Path) -> dict[str, Any]:
+    """:func:`evaluate` at every test state of ``capture`` (into ``out_dir/<state>/``), then
+    ``out_dir/report.json`` and ``report.md``: each state's view count and mean, and ``"mean"``, the mean over
+    the states of their means (a metric missing in a state is left out of its mean). ValueError when the
+    capture has no test states."""
+    states = test_states(capture)
+    if not states:
+        raise ValueError(f"{capture}: the capture has no test states to evaluate at")
+    out = Path(out_dir)
+    per_state = {}
+    for s in states:
+        r = evaluate(world_path, capture, out / s, state=s)
+        per_state[s] = {"views": r["views"], "mean": r["mean"]}
+    mean = {}
+    for k in ("psnr", "ssim", "mask_iou"):
+        vals = [v["mean"][k] for v in per_state.values() if v["mean"][k] is not None]
+        mean[k] = float(np.mean(vals)) if vals else None
+    report = {"world": str(world_path), "capture": str(capture), "state": "test",
+              "views": sum(v["views"] for v in per_state.values()), "states": per_state, "mean": mean}
+    lines = [f"# Evaluation of `{Path(world_path).name}` at the test states", "",
+             "| state | views | PSNR (dB) | SSIM | mask IoU |", "| --- | --- | --- | --- | --- |"]
+    for s, v in per_state.items():
+        m = v["mean"]
+        lines.append(f"| {s} | {v['views']} | {_fmt(m['psnr'])} | {_fmt(m['ssim'])} | {_fmt(m['mask_iou'])} |")
+    lines.append(f"| **mean** | {report['views']} | **{_fmt(mean['psnr'])}** | **{_fmt(mean['ssim'])}** | "
+                 f"**{_fmt(mean['mask_iou'])}** |")
+    atomic_write_json(out / "report.json", report)
+    atomic_write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode("utf-8"))
+    return report
+
+
 def _fmt(v) -> str:
     return "-" if v is None else f"{v:.4f}" if isinstance(v, float) and abs(v) < 2 else f"{v:.2f}"
 
@@ -296,16 +343,33 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder for report.json/report.md/grid.png")
     p.add_argument(
         "--state",
-        help="evaluate all views of this state at its object poses (default: the "
-        "held-out views of the training state)",
+        help="evaluate all views of this state at its object poses; 'test': every test state of the capture "
+        "(default: 'test' for a two-state world on a capture with test states, else the held-out views of "
+        "the training state)",
     )
+    p.add_argument("--suite", action="store_true",
+                   help="instead: run the DSG-World comparison (dsg-suite); the other options are dsg-suite's")
     return p
 
 
+def _default_state(world_path: Path, capture: Path) -> str | None:
+    two_state = "dual" in load_world(world_path).metadata
+    return "test" if two_state and test_states(capture) else None
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--suite" in argv:  # dsg-eval --suite: the comparison, with dsg-suite's options
+        from train_world.suite import main as suite_main
+
+        return suite_main([a for a in argv if a != "--suite"])
     args = _parser().parse_args(argv)
     try:
-        r = evaluate(args.world, args.capture, args.out, state=args.state)
+        state = args.state if args.state is not None else _default_state(args.world, args.capture)
+        if state == "test":
+            r = evaluate_test_states(args.world, args.capture, args.out)
+        else:
+            r = evaluate(args.world, args.capture, args.out, state=state)
     except (WorldFormatError, CaptureError, ValueError, KeyError) as e:
         print(f"dsg-eval: error: {e}", file=sys.stderr)
         return 2

@@ -169,7 +169,7 @@ def run_suite(
 ) -> dict[str, Any]:
     """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``."""
     from train_world.data import load_capture
-    from train_world.evaluate import evaluate
+    from train_world.evaluate import evaluate_test_states
     from train_world.recon.presets import get_preset
 
     out = Path(out)
@@ -243,18 +243,11 @@ def run_suite(
                     info["peak_rss_mb"] = max(info.get("peak_rss_mb", 0.0), r.get("peak_rss_mb", 0.0))
                 info_path.write_text(json.dumps(info, indent=1))
             info = json.loads(info_path.read_text()) if info_path.is_file() else {}
-            per_state = {}
-            for s in test_states:
-                r = evaluate(world, cap, out / "eval" / scene / m / s, state=s)
-                per_state[s] = r["mean"]
-            mean = {
-                k: (
-                    float(np.mean([v[k] for v in per_state.values() if v[k] is not None]))
-                    if any(v[k] is not None for v in per_state.values())
-                    else None
-                )
-                for k in ("psnr", "ssim", "mask_iou")
-            }
+            if test_states:  # each state's report in eval/<scene>/<method>/<state>/, their mean beside them
+                r = evaluate_test_states(world, cap, out / "eval" / scene / m)
+                per_state, mean = {s: v["mean"] for s, v in r["states"].items()}, r["mean"]
+            else:
+                per_state, mean = {}, {k: None for k in ("psnr", "ssim", "mask_iou")}
             runs[m] = {"mean": mean, "per_state": per_state, "train": info}
         results["scenes"][scene] = runs
         shown = {m: wdir / f"{m}.dsgw" for m in ("a", "BCP") if m in methods}
@@ -351,7 +344,15 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.merge:  # joining tables trains nothing: a training option here is a mistake, not a no-op
+        defaults = vars(parser.parse_args(["--out", str(args.out)]))
+        given = ["--" + k.replace("_", "-") for k, v in vars(args).items() if k != "merge" and v != defaults[k]]
+        if given:
+            print(f"dsg-suite: error: --merge trains nothing and takes no training options (got {', '.join(given)})",
+                  file=sys.stderr)
+            return 2
     methods = [m for m in args.methods.split(",") if m]
     bad = [m for m in methods if m not in METHODS]
     if bad:

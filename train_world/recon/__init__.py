@@ -8,8 +8,9 @@ Modules: :mod:`.presets` (configuration), :mod:`.data` (views to train on), :mod
 Importing this package sets ``OMP_WAIT_POLICY=PASSIVE`` unless the environment already sets it (and takes
 effect only if torch/numba's OpenMP runtime is not loaded yet): on a shared 2-core machine, OpenMP threads
 spin-waiting at barriers made each training step up to 25x slower when another process competed for the
-cores (measured: 355 ms vs 15 ms per step). On an idle machine passive waiting is not free: a two-state joint
-step at 60k Gaussians took 0.69-0.82 s passive against 0.53 s spinning (README, "Time").
+cores (measured: 355 ms vs 15 ms per step). On an idle machine it costs nothing measurable: a two-state joint
+step at 60k Gaussians took 0.46-0.48 s passive against 0.47-0.49 s with ``ACTIVE`` (an earlier measurement of
+0.69-0.82 s against 0.53 s did not reproduce; README, "Time").
 """
 
 import os

@@ -51,7 +51,7 @@ from train_world.data import CaptureError, load_capture
 from train_world.data.format import atomic_write_bytes, atomic_write_json, encode_png
 from train_world.recon.data import load_eval_views
 
-__all__ = ["evaluate", "evaluate_test_states", "main", "mask_iou", "render_gaussians", "test_states"]
+__all__ = ["capture_test_states", "evaluate", "evaluate_test_states", "main", "mask_iou", "render_gaussians"]
 
 _PALETTE = np.array(
     [
@@ -269,7 +269,7 @@ def evaluate(
     return report
 
 
-def test_states(capture: str | Path) -> list[str]:
+def capture_test_states(capture: str | Path) -> list[str]:
     """The states of the capture's ``"test"`` split, in the capture's order."""
     splits = load_capture(capture, states=[], load_depth=False).splits
     return [s for s, split in splits.items() if split == "test"]
@@ -280,7 +280,7 @@ def evaluate_test_states(world_path: str | Path, capture: str | Path, out_dir: s
     ``out_dir/report.json`` and ``report.md``: each state's view count and mean, and ``"mean"``, the mean over
     the states of their means (a metric missing in a state is left out of its mean). ValueError when the
     capture has no test states."""
-    states = test_states(capture)
+    states = capture_test_states(capture)
     if not states:
         raise ValueError(f"{capture}: the capture has no test states to evaluate at")
     out = Path(out_dir)
@@ -354,7 +354,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _default_state(world_path: Path, capture: Path) -> str | None:
     two_state = "dual" in load_world(world_path).metadata
-    return "test" if two_state and test_states(capture) else None
+    return "test" if two_state and capture_test_states(capture) else None
 
 
 def main(argv: list[str] | None = None) -> int:

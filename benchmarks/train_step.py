@@ -1,0 +1,175 @@
+"""Two-state training step time: reconstruction steps against joint (DSG-World) steps, in one process.
+
+    python -m benchmarks.train_step --out step.json [--scene two_blocks] [--steps 40] [--checkpoint CKPT]
+    python -m benchmarks.train_step --out step.json --quick          # seconds: a 24x24 scene, quick preset
+
+Builds ``dsg-train``'s two-state trainer (``default`` preset) on a synthetic capture (generated into a
+temporary folder, 128x128) and times ``--steps`` reconstruction steps (each field renders its own view: 2
+renders), then as many joint steps (2 reconstruction renders, the 2 transfers of B and, every second step, the
+2 pseudo-state renders of P). Without ``--checkpoint`` the fields are the initial ones (the preset's initial
+points) and the joint steps start by moving the step counter to the joint phase; with a two-state checkpoint
+taken at the joint phase's start (``dsg-suite``'s ``worlds/<scene>/recon.ckpt``, made on the same capture and
+options) both phases run on its trained fields, which is what a real joint phase costs. ``--profile`` adds the
+functions that took most of the joint steps (cProfile, own time).
+
+Writes ``{config, recon: {ms_median, ms_mean, renders_per_step, ms_per_render}, joint: {...},
+joint_over_recon, ms_per_render_ratio, profile?}``: the ratios come from the same process and fields, so they
+compare across machines and changes where absolute times do not. Absolute times depend on the load: run it on
+an idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import dataclasses
+import json
+import os
+import pstats
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import train_world  # noqa: F401  (OpenMP wait policy and numba's threading layer, before torch loads)
+
+
+def _time_steps(trainer, n: int, warmup: int) -> list[float]:
+    for _ in range(warmup):
+        trainer.train_step()
+    times = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        trainer.train_step()
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def _summary(times: list[float], renders: float) -> dict[str, float]:
+    med = statistics.median(times) * 1e3
+    return {
+        "steps": len(times),
+        "ms_median": round(med, 2),
+        "ms_mean": round(statistics.fmean(times) * 1e3, 2),
+        "renders_per_step": renders,
+        "ms_per_render": round(med / renders, 2),
+    }
+
+
+def _joint_renders(cfg) -> float:
+    return 2.0 + 2.0 * cfg.use_align + (2.0 / cfg.pseudo_every) * cfg.use_pseudo
+
+
+def _profile_top(trainer, n: int, top: int = 12) -> list[dict[str, Any]]:
+    pr = cProfile.Profile()
+    pr.enable()
+    for _ in range(n):
+        trainer.train_step()
+    pr.disable()
+    st = pstats.Stats(pr)
+    total = sum(v[2] for v in st.stats.values())  # own time of every function
+    rows = sorted(st.stats.items(), key=lambda kv: kv[1][2], reverse=True)[:top]
+    return [
+        {"function": f"{Path(f).name}:{line}({name})", "calls": v[1], "own_ms_per_step": round(v[2] / n * 1e3, 2),
+         "share": round(v[2] / total, 4)}
+        for (f, line, name), v in rows
+    ]
+
+
+def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | None, quick: bool,
+        profile: bool, capture: Path | None = None, iterations: int | None = None) -> dict[str, Any]:
+    import numba
+    import torch
+
+    from train_world.dual.cli import _parser as dual_parser
+    from train_world.dual.cli import config_from_args
+    from train_world.dual.trainer import DualTrainer
+    from train_world.synth.cli import main as synth_main
+
+    given = capture
+    with tempfile.TemporaryDirectory() as tmp:
+        if capture is None:
+            capture = Path(tmp) / scene
+            size = ["--width", "24", "--height", "24", "--views", "8", "--test-views", "1"] if quick else []
+            if synth_main(["--scene", scene, "--out", str(capture), "--quiet", *size]) != 0:
+                raise RuntimeError(f"dsg-synth failed for scene {scene!r}")
+        args = [str(capture), "--out", str(Path(tmp) / "unused.dsgw"), "--preset", "quick" if quick else "default",
+                *([] if iterations is None else ["--iterations", str(iterations)])]
+        cfg = config_from_args(dual_parser().parse_args(args))
+        trainer = DualTrainer(capture, cfg)
+        if checkpoint is not None:
+            trainer.load_checkpoint(checkpoint, branch=True)
+            if trainer.step != trainer.joint_start:
+                raise ValueError(f"{checkpoint}: taken at step {trainer.step}, not at the joint phase's start "
+                                 f"({trainer.joint_start})")
+            # reconstruction steps on the trained fields: the joint terms switched off, then the fields restored
+            trainer.config = dataclasses.replace(cfg, use_align=False, use_prune=False, use_pseudo=False)
+            recon = _time_steps(trainer, steps, warmup)
+            trainer.config = cfg
+            trainer.load_checkpoint(checkpoint, branch=True)
+        else:
+            if warmup + steps > trainer.joint_start:
+                raise ValueError(f"--warmup + --steps must stay within the reconstruction phase "
+                                 f"({trainer.joint_start} steps)")
+            recon = _time_steps(trainer, steps, warmup)
+            trainer.step = trainer.t1.step = trainer.t2.step = trainer.joint_start
+        joint = _time_steps(trainer, steps, warmup)
+        top = _profile_top(trainer, steps) if profile else None
+        n_gauss = trainer.t1.field.num + trainer.t2.field.num
+    result: dict[str, Any] = {
+        "config": {
+            "scene": None if given is not None else scene,
+            "capture": None if given is None else str(given),
+            "checkpoint": None if checkpoint is None else str(checkpoint),
+            "preset": cfg.base.preset.name,
+            "gaussians_both_fields": n_gauss,
+            "torch_threads": torch.get_num_threads(),
+            "numba_threads": numba.get_num_threads(),
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "cpus": os.cpu_count(),
+        },
+        "recon": _summary(recon, 2.0),
+        "joint": _summary(joint, _joint_renders(cfg)),
+    }
+    result["joint_over_recon"] = round(result["joint"]["ms_median"] / result["recon"]["ms_median"], 3)
+    result["ms_per_render_ratio"] = round(result["joint"]["ms_per_render"] / result["recon"]["ms_per_render"], 3)
+    if top is not None:
+        result["profile"] = top
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp_out = out.with_name(out.name + ".tmp")
+    tmp_out.write_text(json.dumps(result, indent=1))
+    os.replace(tmp_out, out)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.train_step",
+                                description=__doc__.split("\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    p.add_argument("--scene", default="two_blocks", help="dsg-synth scene (default two_blocks)")
+    p.add_argument("--capture", type=Path, help="an existing two-state capture instead of generating --scene")
+    p.add_argument("--checkpoint", type=Path,
+                   help="two-state checkpoint at the joint phase's start (e.g. dsg-suite's recon.ckpt; needs "
+                        "--capture, the capture it was trained on)")
+    p.add_argument("--iterations", type=int,
+                   help="the training's step count, as dsg-train's (must match the checkpoint's; default: the preset's)")
+    p.add_argument("--steps", type=int, default=40, help="timed steps per phase (default 40)")
+    p.add_argument("--warmup", type=int, default=5, help="untimed steps before each phase (default 5)")
+    p.add_argument("--profile", action="store_true", help="also profile the joint steps (cProfile)")
+    p.add_argument("--quick", action="store_true", help="a 24x24 scene and the quick preset (for tests)")
+    args = p.parse_args(argv)
+    if args.steps < 1 or args.warmup < 0:
+        p.error("--steps must be >= 1 and --warmup >= 0")
+    if args.checkpoint is not None and args.capture is None:
+        p.error("--checkpoint needs --capture (the capture the checkpoint was trained on)")
+    r = run(args.out, scene=args.scene, steps=args.steps, warmup=args.warmup, checkpoint=args.checkpoint,
+            quick=args.quick, profile=args.profile, capture=args.capture, iterations=args.iterations)
+    print(json.dumps({k: r[k] for k in ("recon", "joint", "joint_over_recon")}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

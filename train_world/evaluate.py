@@ -51,7 +51,7 @@ from train_world.data import CaptureError, load_capture
 from train_world.data.format import atomic_write_bytes, atomic_write_json, encode_png
 from train_world.recon.data import load_eval_views
 
-__all__ = ["capture_test_states", "evaluate", "evaluate_test_states", "main", "mask_iou", "render_gaussians"]
+__all__ = ["capture_test_states", "evaluate", "evaluate_test_states", "main", "mask_iou", "mean_of_means", "render_gaussians"]
 
 _PALETTE = np.array(
     [
@@ -275,6 +275,16 @@ def capture_test_states(capture: str | Path) -> list[str]:
     return [s for s, split in splits.items() if split == "test"]
 
 
+def mean_of_means(means: list[Mapping[str, float | None]]) -> dict[str, float | None]:
+    """Per metric (psnr, ssim, mask_iou), the mean of the reports' ``"mean"`` values that are not None (None
+    when all are)."""
+    out: dict[str, float | None] = {}
+    for k in ("psnr", "ssim", "mask_iou"):
+        vals = [m[k] for m in means if m.get(k) is not None]
+        out[k] = float(np.mean(vals)) if vals else None
+    return out
+
+
 def evaluate_test_states(world_path: str | Path, capture: str | Path, out_dir: str | Path) -> dict[str, Any]:
     """:func:`evaluate` at every test state of ``capture`` (into ``out_dir/<state>/``), then
     ``out_dir/report.json`` and ``report.md``: each state's view count and mean, and ``"mean"``, the mean over
@@ -288,10 +298,7 @@ def evaluate_test_states(world_path: str | Path, capture: str | Path, out_dir: s
     for s in states:
         r = evaluate(world_path, capture, out / s, state=s)
         per_state[s] = {"views": r["views"], "mean": r["mean"]}
-    mean = {}
-    for k in ("psnr", "ssim", "mask_iou"):
-        vals = [v["mean"][k] for v in per_state.values() if v["mean"][k] is not None]
-        mean[k] = float(np.mean(vals)) if vals else None
+    mean = mean_of_means([v["mean"] for v in per_state.values()])
     report = {"world": str(world_path), "capture": str(capture), "state": "test",
               "views": sum(v["views"] for v in per_state.values()), "states": per_state, "mean": mean}
     lines = [f"# Evaluation of `{Path(world_path).name}` at the test states", "",

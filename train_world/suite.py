@@ -38,7 +38,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 __all__ = ["METHODS", "main", "merge_tables", "run_suite"]
 
@@ -264,20 +263,12 @@ def _f(v, nd=2):
 
 def _write_tables(out: Path, results: dict[str, Any]) -> None:
     from train_world.data.format import atomic_write_bytes, atomic_write_json
+    from train_world.evaluate import mean_of_means
 
     scenes = list(results["scenes"])
     methods = results["methods"]
-    mean_over = {}
-    for m in methods:
-        vals = [results["scenes"][s][m]["mean"] for s in scenes if m in results["scenes"][s]]
-        mean_over[m] = {
-            k: (
-                float(np.mean([v[k] for v in vals if v[k] is not None]))
-                if any(v[k] is not None for v in vals)
-                else None
-            )
-            for k in ("psnr", "ssim", "mask_iou")
-        }
+    mean_over = {m: mean_of_means([results["scenes"][s][m]["mean"] for s in scenes if m in results["scenes"][s]])
+                 for m in methods}
     results["mean_over_scenes"] = mean_over
     lines = [
         f"# DSG-World suite (preset `{results['preset']}`"
@@ -353,6 +344,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"dsg-suite: error: --merge trains nothing and takes no training options (got {', '.join(given)})",
                   file=sys.stderr)
             return 2
+        try:
+            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge])
+        except (OSError, ValueError, KeyError) as e:
+            print(f"dsg-suite: error: {e}", file=sys.stderr)
+            return 2
+        args.out.mkdir(parents=True, exist_ok=True)
+        _write_tables(args.out, r)
+        print(json.dumps({"out": str(args.out), "mean_over_scenes": r["mean_over_scenes"]}))
+        return 0
     methods = [m for m in args.methods.split(",") if m]
     bad = [m for m in methods if m not in METHODS]
     if bad:
@@ -363,16 +363,6 @@ def main(argv: list[str] | None = None) -> int:
         v = getattr(args, name)
         if v is not None:
             synth += [f"--{name.replace('_', '-')}", str(v)]
-    if args.merge:
-        try:
-            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge])
-        except (OSError, ValueError, KeyError) as e:
-            print(f"dsg-suite: error: {e}", file=sys.stderr)
-            return 2
-        args.out.mkdir(parents=True, exist_ok=True)
-        _write_tables(args.out, r)
-        print(json.dumps({"out": str(args.out), "mean_over_scenes": r["mean_over_scenes"]}))
-        return 0
     try:
         r = run_suite(
             args.out,

@@ -440,3 +440,61 @@ def test_numba_sh_gradcheck_and_fallbacks():
     assert _numba_shapes(d, c[None].expand(3, -1, -1, -1)) is None
     assert _numba_shapes(d, c[..., :2]) is None
     assert _numba_shapes(d.float(), c) is None
+
+
+@pytest.mark.parametrize("per_camera", [False, True])
+def test_pair_gather_and_gaussian_major_gradients(per_camera):
+    """The compositing kernels read each (tile, Gaussian) pair's inputs from ``gather_pairs`` and write pair
+    gradients in Gaussian-major rows (``pair_slots``): the image equals compositing each tile's list with
+    ``splat_forward`` straight from the Gaussian arrays, and every pair's row holds its own Gaussian's data."""
+    from dsg_gym.splat import _numba_backend as NB
+    from dsg_gym.splat import _numba_bins as B
+    from dsg_gym.splat import _numba_raster as R
+
+    scene = random_scene(600, width=40, height=34, seed=7, cameras=2)
+    g = torch.Generator().manual_seed(1)
+    if per_camera:
+        scene["colors"] = torch.rand(2, 600, 5, generator=g)
+        scene["opacities"] = torch.rand(2, 600, generator=g) * 0.9 + 0.05
+    colors = scene["colors"].numpy()
+    colors = colors if colors.ndim == 3 else colors[None]
+    opac = scene["opacities"].numpy()
+    opac = opac if opac.ndim == 2 else opac[None]
+    m2, cn, depths, _, rects = (t.detach().numpy() for t in NB.project(
+        scene["means"], scene["quats"], scene["scales"], torch.from_numpy(opac), scene["viewmats"], scene["Ks"], 40,
+        34, 0.01, 1e10))
+    tx, ty = 3, 3
+    order, counts = B.depth_order(depths.view(np.uint32), rects)
+    t_off, t_gauss, g_off, g_pairs = B.bin_gaussians(rects, order, counts, tx, ty)
+    P, D = t_gauss.shape[0], colors.shape[2]
+    pairs = (np.empty((P, 6), np.float32), np.empty((P, 4), np.int32), np.empty((P, D), np.float32))
+    R.gather_pairs(m2, cn, opac, colors, rects, t_off, t_gauss, tx, ty, *pairs)
+    cam = np.repeat(np.arange(2 * tx * ty) // (tx * ty), np.diff(t_off))
+    ci = cam if per_camera else np.zeros_like(cam)
+    np.testing.assert_array_equal(pairs[0][:, :2], m2[cam, t_gauss])
+    np.testing.assert_array_equal(pairs[0][:, 2:5], cn[cam, t_gauss])
+    np.testing.assert_array_equal(pairs[0][:, 5], opac[ci, t_gauss])
+    np.testing.assert_array_equal(pairs[1], rects[cam, t_gauss])
+    np.testing.assert_array_equal(pairs[2], colors[ci, t_gauss])
+    consts = R.make_consts(np.float32)
+    out = np.empty((2, 34, 40, D), np.float32)
+    out_T = np.empty((2, 34, 40), np.float32)
+    R.composite_forward(*pairs, t_off, tx, ty, 40, 34, consts, B.balanced_order(2 * tx * ty), out, out_T)
+    ref = np.empty_like(out)
+    ref_T = np.empty_like(out_T)
+    for ct in range(2 * tx * ty):  # the direct loop, one tile at a time
+        c = ct // (tx * ty)
+        px0, py0, pw, ph, acc, trans, row_done, xc, yc = R.tile_state(ct % (tx * ty), tx, 40, 34, D, np.float32)
+        for s in range(t_off[ct], t_off[ct + 1]):
+            k = t_gauss[s]
+            R.splat_forward(consts, *m2[c, k], *cn[c, k], opac[c if per_camera else 0, k], *rects[c, k],
+                            colors[c if per_camera else 0, k], px0, py0, pw, ph, xc, yc, acc, trans, row_done)
+        R.store_tile(c, px0, py0, pw, ph, acc, trans, ref, ref_T)
+    np.testing.assert_array_equal(out, ref)
+    np.testing.assert_array_equal(out_T, ref_T)
+    assert (out_T < 0.5).mean() > 0.3  # the views are covered
+    slot = R.pair_slots(g_pairs)
+    np.testing.assert_array_equal(g_pairs[slot], np.arange(P))
+    # Gaussian-major rows: pair s of camera c, Gaussian k lands inside k's range of gauss_offsets
+    lo, hi = g_off[cam * 600 + t_gauss], g_off[cam * 600 + t_gauss + 1]
+    assert ((slot >= lo) & (slot < hi)).all()

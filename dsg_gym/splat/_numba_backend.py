@@ -82,22 +82,26 @@ class _Composite(torch.autograd.Function):
                                                                                tiles_y)
         out = torch.empty((C, height, width, D), dtype=dt)
         out_T = torch.empty((C, height, width), dtype=dt)
-        m2, cn, op, col = _np(means2d), _np(conics), _np(opacities), _np(colors)
-        R.composite_forward(m2, cn, op, col, r, tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
-                            _consts(m2.dtype), B.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy())
+        m2 = _np(means2d)
+        P = tile_gauss.shape[0]
+        pairs = (np.empty((P, 6), dtype=m2.dtype), np.empty((P, 4), dtype=r.dtype), np.empty((P, D), dtype=m2.dtype))
+        R.gather_pairs(m2, _np(conics), _np(opacities), _np(colors), r, tile_offsets, tile_gauss, tiles_x, tiles_y,
+                       *pairs)
+        R.composite_forward(*pairs, tile_offsets, tiles_x, tiles_y, width, height, _consts(m2.dtype),
+                            B.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy())
         if backgrounds is not None:
             out += out_T[..., None] * backgrounds[:, None, None, :].detach()
         alphas = (1.0 - out_T)[..., None]
-        ctx.bins = (tile_offsets, tile_gauss, gauss_offsets, gauss_pairs, tiles_x, tiles_y)
+        ctx.bins = (tile_offsets, gauss_offsets, gauss_pairs, tiles_x, tiles_y, pairs)
         ctx.size = (width, height)
         ctx.has_bg = backgrounds is not None
-        ctx.save_for_backward(means2d, conics, colors, opacities, rects, out, out_T)
+        ctx.save_for_backward(means2d, colors, opacities, out, out_T)
         return out, alphas
 
     @staticmethod
     def backward(ctx, v_out, v_alphas):
-        means2d, conics, colors, opacities, rects, out, out_T = ctx.saved_tensors
-        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs, tiles_x, tiles_y = ctx.bins
+        means2d, colors, opacities, out, out_T = ctx.saved_tensors
+        tile_offsets, gauss_offsets, gauss_pairs, tiles_x, tiles_y, pairs = ctx.bins
         width, height = ctx.size
         C, N = means2d.shape[:2]
         D = colors.shape[2]
@@ -107,16 +111,15 @@ class _Composite(torch.autograd.Function):
         if v_alphas is None:
             v_alphas = torch.zeros_like(out_T)[..., None]
         vo = _np(v_out)
-        pair_grads = np.zeros((tile_gauss.shape[0], D + 6), dtype=vo.dtype)
-        R.composite_backward(_np(means2d), _np(conics), _np(opacities), _np(colors), _np(rects),
-                             tile_offsets, tile_gauss, tiles_x, tiles_y, width, height,
-                             _consts(out.numpy().dtype), B.balanced_order(C * tiles_x * tiles_y), out.numpy(),
-                             out_T.numpy(), vo, _np(v_alphas[..., 0]), pair_grads)
+        pair_grads = np.zeros((pairs[0].shape[0], D + 6), dtype=vo.dtype)
+        R.composite_backward(*pairs, tile_offsets, tiles_x, tiles_y, width, height, _consts(out.numpy().dtype),
+                             B.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy(), vo,
+                             _np(v_alphas[..., 0]), R.pair_slots(gauss_pairs), pair_grads)
         v_means2d = torch.empty((C, N, 2), dtype=dt)
         v_conics = torch.empty((C, N, 3), dtype=dt)
         v_colors = torch.empty(colors.shape, dtype=dt)
         v_opac = torch.empty(opacities.shape, dtype=dt)
-        R.reduce_pairs(pair_grads, gauss_offsets, gauss_pairs, C, N, D, v_means2d.numpy(), v_conics.numpy(),
+        R.reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d.numpy(), v_conics.numpy(),
                        v_colors.numpy(), v_opac.numpy())
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[4]:

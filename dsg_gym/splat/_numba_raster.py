@@ -21,6 +21,12 @@ with v = dL/dC, P_i the running sum of w_j (c_j . v) for j <= i, and P_total = C
 dL/dA * A_out (the output alpha behaves as a channel of ones over a zero background).
 Per-(tile, Gaussian) gradients land in their own slots and are summed per Gaussian in a fixed
 order afterwards: the result is deterministic bit for bit.
+
+Memory layout: ``gather_pairs`` first copies each pair's Gaussian data (position, conic, opacity, rectangle,
+colour) into pair order, so both passes stream through it instead of missing the cache once per pair, and the
+backward pass writes each pair's gradients into Gaussian-major rows (``pair_slots``) that ``reduce_pairs``
+sums in one sweep. On a 60k-Gaussian field at 128x128 the two cut the forward and backward compositing time
+by about a sixth each (same bits).
 """
 
 from __future__ import annotations
@@ -293,20 +299,52 @@ def store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T):
             out_T[c, py0 + ly, px0 + lx] = trans[p]
 
 
-@nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss,
-                      tiles_x, tiles_y, width, height, consts, tile_order, out_colors, out_T):
-    """Front-to-back compositing.
+@nb.njit(parallel=True, cache=True)
+def gather_pairs(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss, tiles_x, tiles_y,
+                 pair_f, pair_r, pair_col):
+    """Copy each (tile, Gaussian) pair's inputs into pair order, so that the compositing kernels read them
+    sequentially: looked up per pair inside the compositing loop, they cost a cache miss each (a third of the
+    forward time on a 60k-Gaussian field at 128x128).
 
-    means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors [Cc,N,D] (Co, Cc in {1, C}),
-    rects [C,N,4], consts from ``make_consts``, tile_order from ``balanced_order``; writes
-    out_colors [C,H,W,D] (without background) and out_T [C,H,W] (final transmittance).
+    means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors [Cc,N,D] (Co, Cc in {1, C}), rects [C,N,4],
+    tile_offsets [C*T+1] and tile_gauss [P] from ``bin_gaussians``; writes pair_f [P,6] (u, v, conic a, b, c,
+    opacity), pair_r [P,4] (the pixel rectangle) and pair_col [P,D].
     """
     C = means2d.shape[0]
     D = colors.shape[2]
     Co = opacities.shape[0]
     Cc = colors.shape[0]
     T = tiles_x * tiles_y
+    for ct in nb.prange(C * T):
+        c = ct // T
+        co = 0 if Co == 1 else c
+        cc = 0 if Cc == 1 else c
+        for s in range(tile_offsets[ct], tile_offsets[ct + 1]):
+            g = tile_gauss[s]
+            pair_f[s, 0] = means2d[c, g, 0]
+            pair_f[s, 1] = means2d[c, g, 1]
+            pair_f[s, 2] = conics[c, g, 0]
+            pair_f[s, 3] = conics[c, g, 1]
+            pair_f[s, 4] = conics[c, g, 2]
+            pair_f[s, 5] = opacities[co, g]
+            for k in range(4):
+                pair_r[s, k] = rects[c, g, k]
+            for d in range(D):
+                pair_col[s, d] = colors[cc, g, d]
+
+
+@nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def composite_forward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y, width, height, consts, tile_order,
+                      out_colors, out_T):
+    """Front-to-back compositing of C cameras' tiles.
+
+    pair_f [P,6], pair_r [P,4], pair_col [P,D] from ``gather_pairs`` (each tile's pairs front to back),
+    tile_offsets [C*T+1], consts from ``make_consts``, tile_order from ``balanced_order``; writes
+    out_colors [C,H,W,D] (without background) and out_T [C,H,W] (final transmittance).
+    """
+    D = pair_col.shape[1]
+    T = tiles_x * tiles_y
+    C = out_T.shape[0]
     for m in nb.prange(C * T):
         ct = tile_order[m]
         c = ct // T
@@ -314,34 +352,29 @@ def composite_forward(means2d, conics, opacities, colors, rects, tile_offsets, t
             ct - c * T, tiles_x, width, height, D, out_colors.dtype)
         npix = pw * ph
         ndone = 0
-        co = 0 if Co == 1 else c
-        cc = 0 if Cc == 1 else c
         for s in range(tile_offsets[ct], tile_offsets[ct + 1]):
             if ndone == npix:
                 break
-            g = tile_gauss[s]
-            ndone += splat_forward(consts, means2d[c, g, 0], means2d[c, g, 1], conics[c, g, 0], conics[c, g, 1],
-                                   conics[c, g, 2], opacities[co, g], rects[c, g, 0], rects[c, g, 1],
-                                   rects[c, g, 2], rects[c, g, 3], colors[cc, g], px0, py0, pw, ph, xc, yc,
-                                   acc, trans, row_done)
+            ndone += splat_forward(consts, pair_f[s, 0], pair_f[s, 1], pair_f[s, 2], pair_f[s, 3], pair_f[s, 4],
+                                   pair_f[s, 5], pair_r[s, 0], pair_r[s, 1], pair_r[s, 2], pair_r[s, 3],
+                                   pair_col[s], px0, py0, pw, ph, xc, yc, acc, trans, row_done)
         store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss,
-                       tiles_x, tiles_y, width, height, consts, tile_order, out_colors, out_T, v_colors,
-                       v_alphas, pair_grads):
+def composite_backward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y, width, height, consts,
+                       tile_order, out_colors, out_T, v_colors, v_alphas, pair_slot, pair_grads):
     """Per-(tile, Gaussian) gradients.
 
-    out_colors [C,H,W,D] are the final colours including background, out_T [C,H,W] the final
-    transmittance, v_colors [C,H,W,D] and v_alphas [C,H,W] the incoming gradients. Writes
-    pair_grads [P, D + 6]: (d colour [D], d means2d [2], d conic [3], d opacity); slots of
-    pairs never reached stay as they were (zero-initialise the array).
+    pair_f, pair_r, pair_col, tile_offsets as for ``composite_forward``; out_colors [C,H,W,D] are the final
+    colours including background, out_T [C,H,W] the final transmittance, v_colors [C,H,W,D] and
+    v_alphas [C,H,W] the incoming gradients. Writes row ``pair_slot[s]`` of pair_grads [P, D + 6] for pair s:
+    (d colour [D], d means2d [2], d conic [3], d opacity); rows of pairs never reached stay as they were
+    (zero-initialise the array). With ``pair_slot`` from ``pair_slots``, each Gaussian's rows are contiguous
+    for ``reduce_pairs``.
     """
-    C = means2d.shape[0]
-    D = colors.shape[2]
-    Co = opacities.shape[0]
-    Cc = colors.shape[0]
+    D = pair_col.shape[1]
+    C = out_T.shape[0]
     T = tiles_x * tiles_y
     amax = consts[0]
     amin = consts[1]
@@ -384,29 +417,26 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                 va[p] = a
                 ptot[p] = tot + np.float64(a) * (1.0 - np.float64(out_T[c, py0 + ly, px0 + lx]))
         ndone = 0
-        co = 0 if Co == 1 else c
-        cc = 0 if Cc == 1 else c
         for s in range(tile_offsets[ct], tile_offsets[ct + 1]):
             if ndone == npix:
                 break
-            g = tile_gauss[s]
-            u = means2d[c, g, 0]
-            v = means2d[c, g, 1]
-            ca = conics[c, g, 0] * half
-            cb = conics[c, g, 1]
-            cc_ = conics[c, g, 2] * half
-            ca64 = np.float64(conics[c, g, 0])
+            u = pair_f[s, 0]
+            v = pair_f[s, 1]
+            ca = pair_f[s, 2] * half
+            cb = pair_f[s, 3]
+            cc_ = pair_f[s, 4] * half
+            ca64 = np.float64(pair_f[s, 2])
             cb64 = np.float64(cb)
-            cc64 = np.float64(conics[c, g, 2])
-            o = opacities[co, g]
+            cc64 = np.float64(pair_f[s, 4])
+            o = pair_f[s, 5]
             logo = math.log(np.float64(o) / np.float64(amin))
             # Beyond this sigma, alpha < alpha_min for sure: skip the exp (the margin covers rounding).
             smax = zero + np.float32(logo * 1.0001 + 1e-4)
-            y0 = max(rects[c, g, 2], py0) - py0
-            y1 = min(rects[c, g, 3], py0 + ph - 1) - py0
-            xr0 = max(rects[c, g, 0], px0)
-            xr1 = min(rects[c, g, 1], px0 + pw - 1)
-            col = colors[cc, g]
+            y0 = max(pair_r[s, 2], py0) - py0
+            y1 = min(pair_r[s, 3], py0 + ph - 1) - py0
+            xr0 = max(pair_r[s, 0], px0)
+            xr1 = min(pair_r[s, 1], px0 + pw - 1)
+            col = pair_col[s]
             gcol[:] = 0.0
             gu = 0.0
             gv = 0.0
@@ -422,7 +452,7 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                     continue
                 dy = yc[ly] - v
                 dyd = np.float64(dy)
-                x0, x1 = _row_span(conics[c, g, 0], cb, conics[c, g, 2], u, dyd, logo, xr0, xr1, px0)
+                x0, x1 = _row_span(pair_f[s, 2], cb, pair_f[s, 4], u, dyd, logo, xr0, xr1, px0)
                 if x1 < x0:
                     continue
                 todo = _bits(x0, x1) & ~row_done[ly]  # the span's unfinished pixels, as in the forward pass
@@ -460,23 +490,35 @@ def composite_backward(means2d, conics, opacities, colors, rects, tile_offsets, 
                     gc += 0.5 * vsig * dyd * dyd
                     gu -= vsig * (ca64 * dxd + cb64 * dyd)
                     gv -= vsig * (cb64 * dxd + cc64 * dyd)
+            j = pair_slot[s]
             for d in range(D):
-                pair_grads[s, d] = gcol[d]
-            pair_grads[s, D] = gu
-            pair_grads[s, D + 1] = gv
-            pair_grads[s, D + 2] = ga
-            pair_grads[s, D + 3] = gb
-            pair_grads[s, D + 4] = gc
-            pair_grads[s, D + 5] = go
+                pair_grads[j, d] = gcol[d]
+            pair_grads[j, D] = gu
+            pair_grads[j, D + 1] = gv
+            pair_grads[j, D + 2] = ga
+            pair_grads[j, D + 3] = gb
+            pair_grads[j, D + 4] = gc
+            pair_grads[j, D + 5] = go
+
+
+@nb.njit(cache=True)
+def pair_slots(gauss_pairs):
+    """``pair_slot [P]``: the row of pair s in Gaussian-major order (the inverse of ``gauss_pairs`` from
+    ``bin_gaussians``), so that ``composite_backward`` writes each Gaussian's pair gradients next to each other
+    and ``reduce_pairs`` reads them in one sweep (reading them scattered cost it a cache miss per pair)."""
+    slot = np.empty(gauss_pairs.shape[0], dtype=np.int64)
+    for j in range(gauss_pairs.shape[0]):
+        slot[gauss_pairs[j]] = j
+    return slot
 
 
 @nb.njit(parallel=True, cache=True)
-def reduce_pairs(pair_grads, gauss_offsets, gauss_pairs, C, N, D, v_means2d, v_conics,
-                 v_colors, v_opacities):
-    """Sum pair slots per Gaussian in a fixed order.
+def reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d, v_conics, v_colors, v_opacities):
+    """Sum the pair gradients of each Gaussian in a fixed order (ascending tile).
 
-    v_means2d [C,N,2], v_conics [C,N,3]; v_colors [Cc,N,D] and v_opacities [Co,N] are summed
-    over cameras when they are shared (Cc == 1, Co == 1). All outputs are overwritten.
+    pair_grads [P, D + 6] in Gaussian-major order (``composite_backward`` with ``pair_slots``), gauss_offsets
+    [C*N+1] from ``bin_gaussians``; v_means2d [C,N,2], v_conics [C,N,3]; v_colors [Cc,N,D] and v_opacities
+    [Co,N] are summed over cameras when they are shared (Cc == 1, Co == 1). All outputs are overwritten.
     """
     Cc = v_colors.shape[0]
     Co = v_opacities.shape[0]
@@ -494,8 +536,7 @@ def reduce_pairs(pair_grads, gauss_offsets, gauss_pairs, C, N, D, v_means2d, v_c
             gcn = 0.0
             go = 0.0
             kc = 0 if Cc == 1 else c
-            for j in range(gauss_offsets[c * N + i], gauss_offsets[c * N + i + 1]):
-                s = gauss_pairs[j]
+            for s in range(gauss_offsets[c * N + i], gauss_offsets[c * N + i + 1]):
                 for d in range(D):
                     v_colors[kc, i, d] += pair_grads[s, d]
                 gu += pair_grads[s, D]

@@ -25,8 +25,9 @@ order afterwards: the result is deterministic bit for bit.
 Memory layout: ``gather_pairs`` first copies each pair's Gaussian data (position, conic, opacity, rectangle,
 colour) into pair order, so both passes stream through it instead of missing the cache once per pair, and the
 backward pass writes each pair's gradients into Gaussian-major rows (``pair_slots``) that ``reduce_pairs``
-sums in one sweep. On a 60k-Gaussian field at 128x128 the two cut the forward and backward compositing time
-by about a sixth each (same bits).
+sums in one sweep. Same bits as before; on the compositing calls of two_blocks joint steps (60k Gaussians per
+field, 128x128) backward plus reduction took 11% less time on 2 threads, the forward pass including the gather
+4% less on 2 threads and 20% less on 1.
 """
 
 from __future__ import annotations

@@ -309,7 +309,8 @@ def gather_pairs(means2d, conics, opacities, colors, rects, tile_offsets, tile_g
 
     means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors [Cc,N,D] (Co, Cc in {1, C}), rects [C,N,4],
     tile_offsets [C*T+1] and tile_gauss [P] from ``bin_gaussians``; writes pair_f [P,6] (u, v, conic a, b, c,
-    opacity), pair_r [P,4] (the pixel rectangle) and pair_col [P,D].
+    opacity), pair_r [P,4] (the pixel rectangle) and pair_col [P,D]. The autograd backend keeps them from the
+    forward to the backward pass: (10 + D) x 4 bytes per pair (8.7 MB for a 128x128 render of 60k Gaussians).
     """
     C = means2d.shape[0]
     D = colors.shape[2]

@@ -36,6 +36,7 @@ import os
 # choice, OpenMP on the 2-core machine, with about 1.6x faster steps; the front compares settings on one
 # layer); train_world would pick OpenMP for training
 _LAYER_SET_HERE = "NUMBA_THREADING_LAYER" not in os.environ
+_WAIT_SET_HERE = "OMP_WAIT_POLICY" not in os.environ
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -315,6 +316,8 @@ def run_training(args, work: Path, out: Path) -> dict:
     env = dict(os.environ)
     if _LAYER_SET_HERE:
         env.pop("NUMBA_THREADING_LAYER", None)  # training runs on train_world's OpenMP layer, as dsg-train
+    if _WAIT_SET_HERE:
+        env.pop("OMP_WAIT_POLICY", None)  # and waits as train_world chooses (train_world._openmp), as dsg-train
     ds = 4 if args.quick else args.train_downscale
     cmd = [sys.executable, "-m", "benchmarks.pareto_training", "--capture", str(cap), "--out", str(tmp),
            "--train-minutes", str(args.train_minutes), "--downscale", str(ds), "--seed", str(args.seed)]

@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import argparse
 import sys
 import time
 from pathlib import Path
+
+import train_world  # noqa: F401  (how torch's and numba's OpenMP pools wait, chosen before torch loads)
 
 PRESET_NAMES = ("quick", "default", "paper")
 

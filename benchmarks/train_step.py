@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-import train_world  # noqa: F401  (OpenMP wait policy and numba's threading layer, before torch loads)
+import train_world  # (OpenMP waiting and numba's threading layer, before torch loads)
 
 
 def _time_steps(trainer, n: int, warmup: int) -> list[float]:
@@ -128,6 +128,7 @@ def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | No
             "torch_threads": torch.get_num_threads(),
             "numba_threads": numba.get_num_threads(),
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "openmp_waiting": train_world._openmp.waiting(),
             "cpus": os.cpu_count(),
         },
         "recon": _summary(recon, 2.0),

@@ -8,3 +8,8 @@ import numba as _numba
 # numba's own choice and guards forks; see dsg_gym.splat.threads). Must happen before any kernel runs.
 if "NUMBA_THREADING_LAYER" not in _os.environ:
     _numba.config.THREADING_LAYER = "omp"
+
+# How torch's and numba's OpenMP pools wait between parallel regions: before either loads OpenMP
+from . import _openmp
+
+_openmp.configure()

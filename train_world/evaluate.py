@@ -29,10 +29,6 @@ Example::
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see train_world.recon: before torch/numba load OpenMP
-
 import argparse
 import json
 import math

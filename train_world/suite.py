@@ -26,12 +26,9 @@ Examples::
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time

@@ -5,10 +5,6 @@ Modules: :mod:`.transfer` (object-aware state transfer T), :mod:`.losses` (L_ali
 world), :mod:`.trainer` (``DualTrainer``, ``DualConfig``), :mod:`.cli` (``dsg-train`` on two states).
 """
 
-import os
-
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see train_world.recon
-
 from .losses import align_loss, pseudo_loss, semantic_divergence
 from .merge import co_paste_background, co_prune_masks, footprint_contains, object_footprints_xy
 from .pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state

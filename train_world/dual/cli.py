@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from train_world.recon.cli import add_mip_argument
+from train_world.recon.cli import add_depth_argument, add_mip_argument, depth_overrides
 from train_world.recon.presets import PRESETS, Preset, TrainConfig, get_preset, mip_overrides
 
 __all__ = ["has_two_training_states", "main", "scaled_preset", "wants_two_state"]
@@ -113,6 +113,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout-every", type=int, default=8, help="hold out every n-th view of each state")
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
     add_mip_argument(p)
+    add_depth_argument(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--joint-from", type=float, default=0.5, help="reconstruction-only fraction (default 0.5)")
     p.add_argument("--lambda-align", type=float, default=1.0)
@@ -148,7 +149,8 @@ def config_from_args(args: argparse.Namespace):
     from .trainer import DualConfig
 
     preset = dataclasses.replace(
-        scaled_preset(args.preset, args.iterations, args.max_gaussians, two_state=True), **mip_overrides(args.mip)
+        scaled_preset(args.preset, args.iterations, args.max_gaussians, two_state=True), **mip_overrides(args.mip),
+        **depth_overrides(args.depth_weight),
     )
     base = TrainConfig(
         preset=preset,

@@ -69,6 +69,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", type=Path, help="checkpoint file (default: WORLD.ckpt)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_depth_argument(p)
     return p
 
 
@@ -80,6 +81,22 @@ def add_mip_argument(p: argparse.ArgumentParser) -> None:
         help="--mip: all of Mip-Splatting (antialiased rasterizer, 2D Mip filter, 3D smoothing filter 0.2); "
         "--no-mip: 3DGS's classic rasterizer (default: the preset's; default/paper: antialiased, no 3D filter)",
     )
+
+
+def add_depth_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--depth-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="weight of an expected-depth term against the capture's depth, where it has depth (relative L1; "
+        "not part of DSG-World; default: the preset's, 0 = off)",
+    )
+
+
+def depth_overrides(weight: float | None) -> dict[str, float]:
+    """Preset fields for ``--depth-weight`` (none when not given)."""
+    return {} if weight is None else {"lambda_depth": float(weight)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -98,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     ckpt = args.checkpoint or args.out.with_name(args.out.name + ".ckpt")
     try:
         preset = get_preset(args.preset, **({"iterations": args.iterations} if args.iterations else {}),
-                            **mip_overrides(args.mip))
+                            **mip_overrides(args.mip), **depth_overrides(args.depth_weight))
         config = TrainConfig(
             preset=preset,
             seed=args.seed,

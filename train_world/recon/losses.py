@@ -2,7 +2,8 @@
 
 ``L_r = (1 - lambda) * L1 + lambda * (1 - SSIM) + lambda_id * CE(classifier(S), mask) / log(K + 1)``
 plus, every few steps, the 3D neighbour term: the KL divergence between the class distribution of sampled
-Gaussians and that of their k nearest neighbours (by position), weighted ~2.
+Gaussians and that of their k nearest neighbours (by position), weighted ~2. Optional (not DSG-World's, off
+by default): :func:`depth_loss` where the capture has depth.
 
 Images are ``[..., H, W, C]`` (channels last, like the renderer's output).
 """
@@ -16,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = [
+    "depth_loss",
     "identity_loss",
     "knn_indices",
     "l1_loss",
@@ -28,6 +30,24 @@ __all__ = [
 
 def l1_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return (pred - gt).abs().mean()
+
+
+def depth_loss(depth_sum: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor, min_alpha: float = 0.5
+               ) -> torch.Tensor:
+    """Mean relative error ``|D - D_gt| / D_gt`` of the rendered expected depth ``D = depth_sum / alpha``.
+
+    ``depth_sum [..., H, W]``: the alpha-blended camera-space z (``sum_i w_i z_i``), ``alpha [..., H, W]`` the
+    accumulated opacity, ``gt [..., H, W]`` z-depth in the same units (``<= 0``: no depth there). Only pixels
+    with depth and ``alpha > min_alpha`` count (which pixels count carries no gradient), so the term shapes
+    geometry, not opacity: it neither fights opacity resets nor fills holes. Zero (with gradient) where no
+    pixel counts. Relative, so the weight does not depend on the scene's units or size.
+    """
+    valid = (gt > 0) & (alpha.detach() > min_alpha)
+    if not bool(valid.any()):
+        return depth_sum.sum() * 0.0
+    d = depth_sum[valid] / alpha[valid]
+    g = gt[valid]
+    return ((d - g).abs() / g).mean()
 
 
 def _gaussian_window(size: int, sigma: float, channels: int, dtype, device) -> torch.Tensor:

@@ -9,6 +9,7 @@ degree up every 1000), scaled to each preset's length.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -61,6 +62,8 @@ class Preset:
     reg3d_weight: float = 2.0
     reg3d_k: int = 5
     reg3d_samples: int = 1000
+    # not DSG-World's: relative expected-depth L1 against the capture's depth where it has depth (0: off)
+    lambda_depth: float = 0.0
     checkpoint_every: int = 500
     # Mip-Splatting: the renderer's mode ("antialiased" = 2D Mip filter), its 2D low-pass in px^2 (3DGS 0.3,
     # Mip-Splatting 0.1) and the 3D filter's variance factor (0: off; the paper's 0.2)
@@ -83,6 +86,8 @@ class Preset:
             check_splat_options(self.rasterize_mode, self.eps2d)
         except ValueError as e:
             raise ValueError(f"preset {self.name!r}: {e}") from None
+        if not (math.isfinite(self.lambda_depth) and self.lambda_depth >= 0):
+            raise ValueError(f"preset {self.name!r}: lambda_depth must be a finite number >= 0, got {self.lambda_depth}")
         if not self.filter3d_scale >= 0:
             raise ValueError(f"preset {self.name!r}: filter3d_scale must be >= 0, got {self.filter3d_scale}")
         for name in ("densify_every", "sh_degree_every", "checkpoint_every", "reg3d_every", "reset_every"):

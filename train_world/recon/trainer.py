@@ -33,7 +33,7 @@ from .init import (
     scene_bounds_from_cameras,
     scene_extent,
 )
-from .losses import identity_loss, neighbour_kl_loss, photometric_loss, psnr
+from .losses import depth_loss, identity_loss, neighbour_kl_loss, photometric_loss, psnr
 from .presets import TrainConfig
 from .strategy import DensifyStrategy, StrategyConfig
 
@@ -97,6 +97,8 @@ class Trainer:
         self.queue = torch.zeros(0, dtype=torch.int64)
         self.background = torch.tensor(data.background, dtype=torch.float32)
         self.has_masks = data.classes is not None and data.num_classes > 1
+        # optional depth term (preset.lambda_depth, not DSG-World's): only where the capture has depth
+        self.uses_depth = config.preset.lambda_depth > 0 and data.depths is not None
         self.field, self.classifier = self._initial_field()
         self._configure_filters()
         self.optimizers = make_optimizers(self.field, self.preset.lrs, self.extent)
@@ -185,10 +187,15 @@ class Trainer:
             sh_degree=deg,
             background=self.background,
             with_features=self.has_masks,
+            with_depth=self.uses_depth,
         )
         gt = d.images[i]
         loss = photometric_loss(out.rgb[0], gt, p.lambda_dssim)
         stats = {"psnr": psnr(out.rgb[0].clamp(0, 1), gt)}
+        if self.uses_depth:
+            dl = depth_loss(out.depth[0], out.alpha[0, ..., 0], d.depths[i])
+            loss = loss + p.lambda_depth * dl
+            stats["depth"] = float(dl.detach())
         if self.has_masks:
             id_loss = identity_loss(classifier(out.features[0]), d.classes[i])
             loss = loss + p.lambda_identity * id_loss

@@ -5,8 +5,8 @@ each reads ``OMP_WAIT_POLICY`` once, when it loads. The two pools see different 
 
 * torch runs hundreds of small parallel operations per training step (every op on more than 32k elements:
   the render's activations and transforms, the losses, their backward, Adam). With sleeping workers each one
-  pays a futex wake-up, about 50 us on this virtual machine (``x.min(); x * 2`` on 60k floats: 113 us with a
-  sleeping worker, 31 us with a spinning one, 16 us on one thread).
+  pays a futex wake-up, about 50 us on this virtual machine (``x.min(); x * 2`` on 60k floats: 104 us with a
+  sleeping worker, 10 us with a spinning one, 13 us on one thread; idle, session 13).
 * numba runs a few dozen long kernels per step (projection, compositing), where a wake-up is noise.
 
 So by default (``OMP_WAIT_POLICY`` unset) torch's pool keeps libgomp's default policy (spin a while, then

@@ -150,7 +150,7 @@ class DSGWorldEnv(gym.Env):
     | ``render_mode`` | ``None`` | ``"rgb_array"``: ``render()`` returns uint8 ``(render_height, render_width * V, 3)`` |
     | ``render_width``, ``render_height`` | 256, 256 | size of ``render()`` images |
     | ``background_color`` | ``(0, 0, 0)`` | RGB in [0, 1] behind all Gaussians |
-    | ``render_settings`` | ``RenderSettings()`` | renderer speed/accuracy knobs (:class:`~dsg_gym.scene_renderer.RenderSettings` or a dict of its fields: ``alpha_min`` 3/255, ``t_min`` 1e-3, ``sh_degree`` ``None``: the point ``benchmarks/pareto.py`` recommends; ``{"alpha_min": 1/255, "t_min": 1e-4}`` renders exactly like the training renderer) |
+    | ``render_settings`` | ``RenderSettings()`` | renderer speed/accuracy knobs (:class:`~dsg_gym.scene_renderer.RenderSettings` or a dict of its fields: ``alpha_min`` 2/255, ``t_min`` 1e-3, ``sh_degree`` ``None``: the point ``benchmarks/pareto.py`` recommends; ``{"alpha_min": 1/255, "t_min": 1e-4}`` renders exactly like the training renderer) |
     | ``max_episode_steps`` | ``None`` | internal truncation (``gymnasium.make`` adds a ``TimeLimit`` of 200 steps anyway) |
 
     ## Action space

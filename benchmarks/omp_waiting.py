@@ -75,10 +75,10 @@ def run(out: Path, bench_args: list[str], rounds: int, settings: tuple[str, ...]
         "summary": summary,
         "auto_over_passive": {s: round(v["auto"] / v["passive"], 3) for s, v in summary.items()},
     }
+    from train_world.data.format import atomic_write_json  # (loads torch: not before the measurements)
+
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_out = out.with_name(out.name + ".tmp")
-    tmp_out.write_text(json.dumps(result, indent=1))
-    os.replace(tmp_out, out)
+    atomic_write_json(out, result)
     return result
 
 

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import train_world  # (OpenMP waiting and numba's threading layer, before torch loads)
+from train_world.data.format import atomic_write_json
 
 
 def _time_steps(trainer, n: int, warmup: int) -> list[float]:
@@ -139,9 +140,7 @@ def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | No
     if top is not None:
         result["profile"] = top
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_out = out.with_name(out.name + ".tmp")
-    tmp_out.write_text(json.dumps(result, indent=1))
-    os.replace(tmp_out, out)
+    atomic_write_json(out, result)
     return result
 
 

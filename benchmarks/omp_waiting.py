@@ -10,9 +10,10 @@ unset: what :mod:`train_world._openmp` chooses, normally torch's pool spinning a
 ``--rounds`` rounds; ``pair`` starts two processes of the same mode, the second ``--stagger`` seconds after
 the first (so the first chooses on an idle machine and the second beside it, as when a second training starts
 during a first). A process loads and times its steps in well under a minute, so a long stagger lets the two
-run one after the other and the pair measures nothing: check that the pair's times exceed the alone ones. Writes ``{config, runs: [{mode, setting, joint_ms, recon_ms, waiting}], summary: {setting:
-{mode: best joint ms}}, auto_over_passive: {setting: ratio}}``: the ratios come from one machine and session;
-the absolute times do not carry over.
+run one after the other and the pair measures nothing: check that the pair's times exceed the alone ones.
+Writes ``{config, runs: [{mode, setting, joint_ms, recon_ms, waiting}], summary: {setting: {mode: best joint
+ms}}, auto_over_passive: {setting: ratio}}``: the ratios come from one machine and session; the absolute times
+do not carry over.
 """
 
 from __future__ import annotations

@@ -262,8 +262,8 @@ class SegmentedField(nn.Module):
         quats)``; SH colours turn with it when it has a ``rotate_dirs(dirs [C,N,3])`` or a ``rotations()``
         ``[N,3,3]`` method, as :class:`train_world.dual.transfer.ObjectTransfer` has; ``sh_degree``: the SH degree used (default:
         the field's maximum); ``background``: ``[3]`` RGB (features get 0 behind); ``mask``: boolean ``[N]``
-        selecting the Gaussians drawn; ``with_depth``: also blend each Gaussian's camera-space z as one more
-        channel (``RenderOutput.depth``; divide by ``alpha`` for the expected depth), differentiable in the means.
+        selecting the Gaussians drawn; ``with_depth``: also the accumulated depth (the rasterizer's ``RGB+D``
+        mode, ``RenderOutput.depth``; divide by ``alpha`` for the expected depth), differentiable in the means.
         """
         means, quats = self.means, self.quats
         scales, opac = self.scales_opacities()
@@ -293,25 +293,20 @@ class SegmentedField(nn.Module):
         rgb = torch.clamp_min(spherical_harmonics(deg, dirs, sh[None]) + 0.5, 0.0)  # [C,N,3] (first k bases)
         C = viewmats.shape[0]
         rgb = rgb.expand(C, -1, -1)
-        parts = [rgb, feats[None].expand(C, -1, -1)] if with_features else [rgb]
-        if with_depth:  # z of each centre in each camera: [C,N,1]
-            vm = viewmats.to(means.dtype)
-            parts.append((means @ vm[:, 2, :3].T + vm[:, 2, 3]).T[..., None])
-        cols = torch.cat(parts, dim=-1) if len(parts) > 1 else rgb
+        cols = torch.cat([rgb, feats[None].expand(C, -1, -1)], dim=-1) if with_features else rgb
         bg = None
         if background is not None:
             bg = background.to(means.dtype)
-            extra = (feats.shape[1] if with_features else 0) + int(with_depth)
-            if extra:
-                bg = torch.cat([bg, bg.new_zeros(extra)])
+            if with_features:
+                bg = torch.cat([bg, bg.new_zeros(feats.shape[1])])
         out, alpha, meta = rasterize(
             means, quats, scales, opac, cols, viewmats, Ks, int(width), int(height), backgrounds=bg,
-            rasterize_mode=self.rasterize_mode, eps2d=self.eps2d,
+            rasterize_mode=self.rasterize_mode, eps2d=self.eps2d, render_mode="RGB+D" if with_depth else "RGB",
         )
         nf = feats.shape[1] if with_features else 0
         return RenderOutput(
-            rgb=out[..., :3], features=out[..., 3 : 3 + nf] if with_features else None, alpha=alpha, meta=meta,
-            depth=out[..., 3 + nf] if with_depth else None,
+            rgb=out[..., :3], features=out[..., 3 : 3 + nf] if with_features else None, alpha=alpha,
+            meta=meta, depth=out[..., 3 + nf] if with_depth else None,
         )
 
     # ------------------------------------------------------------------ export

@@ -87,7 +87,8 @@ class Preset:
         except ValueError as e:
             raise ValueError(f"preset {self.name!r}: {e}") from None
         if not (math.isfinite(self.lambda_depth) and self.lambda_depth >= 0):
-            raise ValueError(f"preset {self.name!r}: lambda_depth must be a finite number >= 0, got {self.lambda_depth}")
+            raise ValueError(
+                f"preset {self.name!r}: lambda_depth must be a finite number >= 0, got {self.lambda_depth}")
         if not self.filter3d_scale >= 0:
             raise ValueError(f"preset {self.name!r}: filter3d_scale must be >= 0, got {self.filter3d_scale}")
         for name in ("densify_every", "sh_degree_every", "checkpoint_every", "reg3d_every", "reset_every"):

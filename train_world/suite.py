@@ -81,6 +81,14 @@ def _provenance() -> dict[str, Any]:
             "cpus": os.cpu_count()}
 
 
+def two_state_schedule(preset: str, iterations: int | None) -> list[int]:
+    """[steps, first joint step] of ``dsg-train``'s two-state run with this preset and ``--iterations``."""
+    from train_world.dual.cli import scaled_preset
+
+    p = scaled_preset(preset, iterations, two_state=True)
+    return [p.iterations, round(p.dual_joint_from * p.iterations)]
+
+
 def merge_tables(tables: list[dict[str, Any]]) -> dict[str, Any]:
     """One table from several suite runs' ``table.json`` dictionaries (in order: a later run's (scene, method)
     replaces an earlier one's). Raises ``ValueError`` naming the setting when the runs' settings differ."""
@@ -174,8 +182,8 @@ def run_suite(
         max_gaussians = get_preset(preset).dual_max_gaussians
     results: dict[str, Any] = {"preset": preset, "iterations": iterations, "mip": mip,
                                "max_gaussians": max_gaussians, "synth_args": list(synth_args or []), "seed": seed,
-                               "pseudo_every": pseudo_every, "scenes": {}, "methods": methods,
-                               "provenance": _provenance()}
+                               "pseudo_every": pseudo_every, "two_state_schedule": two_state_schedule(preset, iterations),
+                               "scenes": {}, "methods": methods, "provenance": _provenance()}
     for scene in scenes:
         cap = out / "data" / scene
         logs = out / "logs" / scene

@@ -115,7 +115,10 @@ def _parser() -> argparse.ArgumentParser:
     add_mip_argument(p)
     add_depth_argument(p)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--joint-from", type=float, default=0.5, help="reconstruction-only fraction (default 0.5)")
+    p.add_argument(
+        "--joint-from", type=float, help="reconstruction-only fraction of the steps (default: the preset's; "
+        "default 2/3, paper 0.5)"
+    )
     p.add_argument("--lambda-align", type=float, default=1.0)
     p.add_argument("--lambda-pseudo", type=float, default=1.0)
     p.add_argument("--no-align", action="store_true", help="switch off bidirectional alignment (B)")
@@ -161,7 +164,7 @@ def config_from_args(args: argparse.Namespace):
     )
     return DualConfig(
         base=base,
-        joint_from=args.joint_from,
+        joint_from=preset.dual_joint_from if args.joint_from is None else args.joint_from,
         lambda_align=args.lambda_align,
         lambda_pseudo=args.lambda_pseudo,
         use_align=not args.no_align,
@@ -222,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         "world": str(args.out),
         "ablation": config.ablation,
         "iterations": trainer.step,
+        "joint_from_step": trainer.joint_start,
         "gaussians": int(world.metadata["num_gaussians"]),
         "field_sizes": dual["field_sizes"],
         "object_sources": dual["object_sources"],

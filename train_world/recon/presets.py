@@ -75,6 +75,8 @@ class Preset:
     # scaled to it) and field-size cap; None: the single-state ones
     dual_iterations: int | None = None
     dual_max_gaussians: int | None = None
+    # fraction of the two-state steps that is reconstruction only (DSG-World: 0.5, 10k + 10k)
+    dual_joint_from: float = 0.5
     lrs: LearningRates = field(default_factory=LearningRates)
 
     def __post_init__(self) -> None:
@@ -94,6 +96,8 @@ class Preset:
         for name in ("densify_every", "sh_degree_every", "checkpoint_every", "reg3d_every", "reset_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"preset {self.name!r}: {name} must be >= 1")
+        if not 0.0 <= self.dual_joint_from <= 1.0:
+            raise ValueError(f"preset {self.name!r}: dual_joint_from must be in [0, 1], got {self.dual_joint_from}")
         for name in ("dual_iterations", "dual_max_gaussians"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"preset {self.name!r}: {name} must be >= 1 or None")
@@ -118,8 +122,10 @@ _AA = {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": 0.
 # without it and 36.17 / 35.61 / 35.35 dB with variance factors 0.05 / 0.1 / 0.2, and the objects' PSNR from
 # cameras 0.35-1.0 m away stayed within 0.35 dB of the filtered worlds. ``--mip`` adds the 3D filter (0.2).
 # ``quick`` keeps 3DGS's classic rasterizer: on its 32-pixel test data the filters cost 2 dB.
-# ``default`` trains two states (DSG-World) for 3000 steps with at most 60k Gaussians per field: on five_small
-# (dsg-synth 1.3) that took 963 s here for 38.15 dB at the test states (5000 steps: 39.03 dB, ~30 min).
+# ``default`` trains two states (DSG-World) for 4500 steps, the first 3000 reconstruction only (a reconstruction
+# step renders two views, a joint step about five), with at most 60k Gaussians per field: on two_blocks (dsg-synth
+# 1.3) 36.04 dB at the test states in 10.7 min here, against 35.49 dB in 8.4 min for 1500 + 1500 steps and
+# 35.62 dB in 11.9 min for 4000 + 1000 (session 14).
 PRESETS: dict[str, Preset] = {
     "quick": Preset(
         name="quick",
@@ -150,8 +156,9 @@ PRESETS: dict[str, Preset] = {
         reg3d_every=5,
         reg3d_samples=1000,
         checkpoint_every=500,
-        dual_iterations=3000,
+        dual_iterations=4500,
         dual_max_gaussians=60_000,
+        dual_joint_from=2 / 3,
         **_AA,
     ),
     "paper": Preset(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from dsg_gym.world import load_world
 from train_world.evaluate import main as ev_main
@@ -35,6 +36,7 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
         info = runs[m]["train"]
         assert info["recon_phase_seconds"] == recon["wall_seconds"] and info["wall_seconds"] > recon["wall_seconds"]
         assert info["ablation"] == {"BC": "B+C", "BCP": "B+C+P"}[m]
+        assert [info["iterations"], info["joint_from_step"]] == table["two_state_schedule"] == [40, recon["step"]]
     md = (out / "table.md").read_text()
     assert "ours: B+C+P" in md and "(a) single-state" in md and "**mean**" in md
     assert (out / "grids" / "two_blocks.png").stat().st_size > 0
@@ -98,3 +100,43 @@ def test_merge_joins_partial_runs_later_wins_and_checks_settings(tmp_path):
     assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p1), "--scenes", "two_blocks"]) == 2
     assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p1), "--no-mip"]) == 2
     assert not (tmp_path / "bad").exists()
+
+
+def _ours(psnr: float, steps: int, joint: int | None) -> dict:
+    r = _run(psnr, 1)
+    r["train"].update({"iterations": steps} if joint is None else {"iterations": steps, "joint_from_step": joint})
+    return r
+
+
+def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
+    from train_world.suite import merge_tables, two_state_schedule
+
+    # a table written before schedules were recorded: its rows say 3000 steps and nothing of the joint phase,
+    # which then started at half the steps
+    old = _table({"two_blocks": {"a": _run(29.0, 1), "B": _ours(35.0, 3000, None), "BCP": _ours(35.5, 3000, None)},
+                  "five_small": {"a": _run(34.0, 1), "BCP": _ours(38.0, 3000, None)}})
+    new = _table({"two_blocks": {"BCP": _ours(36.0, 4500, 3000)}, "five_small": {"BCP": _ours(38.5, 4500, 3000)}},
+                 two_state_schedule=[4500, 3000])
+    assert merge_tables([old])["two_state_schedule"] == [3000, 1500]
+    with pytest.raises(ValueError, match=r"two-state schedules.*\[3000, 1500\]: two_blocks/B"):
+        merge_tables([old, new])  # old B beside new B+C+P
+    m = merge_tables([old, new], ["a", "BCP"])  # (a) does not depend on it: old (a) rows join new ones
+    assert m["methods"] == ["a", "BCP"] and "B" not in m["scenes"]["two_blocks"]
+    assert m["two_state_schedule"] == [4500, 3000]
+    assert m["scenes"]["two_blocks"]["BCP"]["mean"]["psnr"] == 36.0 and m["scenes"]["five_small"]["a"]
+    partial = _table({"two_blocks": {"BCP": _ours(36.0, 4500, 3000)}}, two_state_schedule=[4500, 3000])
+    with pytest.raises(ValueError, match="five_small/BCP"):  # five_small's B+C+P would stay the old run's
+        merge_tables([old, partial], ["a", "BCP"])
+    # the CLI: --methods picks rows, a mixed table is refused and nothing is written
+    p_old, p_new = tmp_path / "old.json", tmp_path / "new.json"
+    p_old.write_text(json.dumps(old))
+    p_new.write_text(json.dumps(new))
+    assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p_old), str(p_new)]) == 2
+    assert not (tmp_path / "bad").exists()
+    assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p_old), "--methods", "a,X"]) == 2
+    assert suite_main(["--out", str(tmp_path / "ok"), "--merge", str(p_old), str(p_new), "--methods", "a,BCP"]) == 0
+    assert json.loads((tmp_path / "ok" / "table.json").read_text())["two_state_schedule"] == [4500, 3000]
+    # what a suite run records: the schedule dsg-train resolves from the preset and --iterations
+    assert two_state_schedule("default", 2000)[0] == 2000
+    d = two_state_schedule("default", None)
+    assert d[0] > d[1] > 0

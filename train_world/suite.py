@@ -14,7 +14,9 @@ Writes ``OUT/table.md`` (methods x scenes, PSNR / SSIM / mask IoU, and the mean 
 ``OUT/eval/<scene>/<method>/<state>/report.json``. ``table.json`` records the settings and the code's commit.
 
 The full suite takes hours; ``--merge`` joins the ``table.json`` files of runs that each did some of the
-scenes (made with the same settings) into one table, a later file's (scene, method) replacing an earlier one's.
+scenes (made with the same settings) into one table, a later file's (scene, method) replacing an earlier one's;
+``--methods`` picks the rows to keep. It refuses to mix rows of ours (B, B+C, B+C+P) trained with different
+two-state schedules (steps, first joint step: ``table.json``'s ``two_state_schedule`` and each training's record).
 
 Examples::
 
@@ -22,6 +24,7 @@ Examples::
     dsg-suite --out /tmp/s --scenes two_blocks --iterations 2000 --methods a,b,BCP
     dsg-suite --out /tmp/s --scenes two_blocks --preset quick --width 32 --height 32 --views 16
     dsg-suite --out merged --merge run1/table.json run2/table.json   # one table from two partial runs
+    dsg-suite --out merged --merge old/table.json new/table.json --methods a,b,BCP
 """
 
 from __future__ import annotations
@@ -89,9 +92,28 @@ def two_state_schedule(preset: str, iterations: int | None) -> list[int]:
     return [p.iterations, round(p.dual_joint_from * p.iterations)]
 
 
-def merge_tables(tables: list[dict[str, Any]]) -> dict[str, Any]:
+_OURS = ("B", "BC", "BCP")
+# what dsg-train did before table.json recorded its schedule (until session 13): the joint phase from half the
+# steps, and ``default`` trained 3000 two-state steps
+_LEGACY_DEFAULT_STEPS = 3000
+
+
+def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> list[int] | None:
+    """[steps, first joint step] that trained one of ours' rows: from its training record, else the table's."""
+    train = row.get("train") or {}
+    if "iterations" in train:
+        return [int(train["iterations"]), int(train.get("joint_from_step", train["iterations"] // 2))]
+    if table.get("two_state_schedule"):
+        return list(table["two_state_schedule"])
+    steps = table.get("iterations") or (_LEGACY_DEFAULT_STEPS if table.get("preset") == "default" else None)
+    return None if steps is None else [int(steps), int(steps) // 2]
+
+
+def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None) -> dict[str, Any]:
     """One table from several suite runs' ``table.json`` dictionaries (in order: a later run's (scene, method)
-    replaces an earlier one's). Raises ``ValueError`` naming the setting when the runs' settings differ."""
+    replaces an earlier one's), keeping ``methods`` (None: all). Raises ``ValueError`` naming the setting when
+    the runs' settings differ, or when the rows kept for ours (B, B+C, B+C+P) were trained with different
+    two-state schedules (steps, first joint step)."""
     if not tables:
         raise ValueError("merge needs at least one table.json")
     first = tables[0]
@@ -102,13 +124,27 @@ def merge_tables(tables: list[dict[str, Any]]) -> dict[str, Any]:
                                  "runs with different settings do not share a table")
     out: dict[str, Any] = {k: first.get(k) for k in _SETTINGS}
     out.update(scenes={}, methods=[], provenance=[])
+    schedules: dict[tuple[str, str], list[int] | None] = {}
     for t in tables:
         out["provenance"].extend(t["provenance"] if isinstance(t.get("provenance"), list) else [t.get("provenance")])
         for m in t.get("methods", []):
-            if m not in out["methods"]:
+            if m not in out["methods"] and (methods is None or m in methods):
                 out["methods"].append(m)
         for scene, runs in t.get("scenes", {}).items():
-            out["scenes"].setdefault(scene, {}).update(runs)
+            kept = {m: r for m, r in runs.items() if methods is None or m in methods}
+            if kept:
+                out["scenes"].setdefault(scene, {}).update(kept)
+            for m, r in kept.items():
+                if m in _OURS:
+                    schedules[(scene, m)] = _row_schedule(r, t)
+    distinct = sorted({tuple(v) if v else () for v in schedules.values()})
+    if len(distinct) > 1:
+        where = {d: [f"{s}/{m}" for (s, m), v in schedules.items() if (tuple(v) if v else ()) == d] for d in distinct}
+        shown = "; ".join(f"{list(d) or 'unknown'}: {', '.join(w[:3])}{' ...' if len(w) > 3 else ''}"
+                          for d, w in where.items())
+        raise ValueError(f"ours' rows were trained with different two-state schedules [steps, first joint step] "
+                         f"({shown}); rerun them or leave some out with --methods")
+    out["two_state_schedule"] = list(distinct[0]) if distinct and distinct[0] else None
     known = _scene_list("all")  # the default scenes in their usual order, then any others
     order = [s for s in known if s in out["scenes"]] + sorted(s for s in out["scenes"] if s not in known)
     out["scenes"] = {s: out["scenes"][s] for s in order}
@@ -344,13 +380,18 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.merge:  # joining tables trains nothing: a training option here is a mistake, not a no-op
         defaults = vars(parser.parse_args(["--out", str(args.out)]))
-        given = ["--" + k.replace("_", "-") for k, v in vars(args).items() if k != "merge" and v != defaults[k]]
+        given = ["--" + k.replace("_", "-") for k, v in vars(args).items()
+                 if k not in ("merge", "methods") and v != defaults[k]]
         if given:
             print(f"dsg-suite: error: --merge trains nothing and takes no training options (got {', '.join(given)})",
                   file=sys.stderr)
             return 2
         try:
-            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge])
+            keep = [m for m in args.methods.split(",") if m]
+            bad = [m for m in keep if m not in METHODS]
+            if bad:
+                raise ValueError(f"unknown methods {bad}; choose from {list(METHODS)}")
+            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge], keep)
         except (OSError, ValueError, KeyError) as e:
             print(f"dsg-suite: error: {e}", file=sys.stderr)
             return 2

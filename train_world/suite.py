@@ -98,15 +98,16 @@ _OURS = ("B", "BC", "BCP")
 _LEGACY_DEFAULT_STEPS = 3000
 
 
-def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> list[int] | None:
-    """[steps, first joint step] that trained one of ours' rows: from its training record, else the table's."""
+def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]:
+    """(steps, first joint step) that trained one of ours' rows: from its training record, else the table's;
+    () when neither tells."""
     train = row.get("train") or {}
     if "iterations" in train:
-        return [int(train["iterations"]), int(train.get("joint_from_step", train["iterations"] // 2))]
+        return int(train["iterations"]), int(train.get("joint_from_step", train["iterations"] // 2))
     if table.get("two_state_schedule"):
-        return list(table["two_state_schedule"])
+        return tuple(table["two_state_schedule"])
     steps = table.get("iterations") or (_LEGACY_DEFAULT_STEPS if table.get("preset") == "default" else None)
-    return None if steps is None else [int(steps), int(steps) // 2]
+    return () if steps is None else (int(steps), int(steps) // 2)
 
 
 def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None) -> dict[str, Any]:
@@ -124,7 +125,7 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
                                  "runs with different settings do not share a table")
     out: dict[str, Any] = {k: first.get(k) for k in _SETTINGS}
     out.update(scenes={}, methods=[], provenance=[])
-    schedules: dict[tuple[str, str], list[int] | None] = {}
+    schedules: dict[tuple[str, str], tuple[int, ...]] = {}
     for t in tables:
         out["provenance"].extend(t["provenance"] if isinstance(t.get("provenance"), list) else [t.get("provenance")])
         for m in t.get("methods", []):
@@ -137,9 +138,9 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
             for m, r in kept.items():
                 if m in _OURS:
                     schedules[(scene, m)] = _row_schedule(r, t)
-    distinct = sorted({tuple(v) if v else () for v in schedules.values()})
+    distinct = sorted(set(schedules.values()))
     if len(distinct) > 1:
-        where = {d: [f"{s}/{m}" for (s, m), v in schedules.items() if (tuple(v) if v else ()) == d] for d in distinct}
+        where = {d: [f"{s}/{m}" for (s, m), v in schedules.items() if v == d] for d in distinct}
         shown = "; ".join(f"{list(d) or 'unknown'}: {', '.join(w[:3])}{' ...' if len(w) > 3 else ''}"
                           for d, w in where.items())
         raise ValueError(f"ours' rows were trained with different two-state schedules [steps, first joint step] "
@@ -378,6 +379,11 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    methods = [m for m in args.methods.split(",") if m]
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        print(f"dsg-suite: error: unknown methods {bad}; choose from {list(METHODS)}", file=sys.stderr)
+        return 2
     if args.merge:  # joining tables trains nothing: a training option here is a mistake, not a no-op
         defaults = vars(parser.parse_args(["--out", str(args.out)]))
         given = ["--" + k.replace("_", "-") for k, v in vars(args).items()
@@ -387,11 +393,7 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr)
             return 2
         try:
-            keep = [m for m in args.methods.split(",") if m]
-            bad = [m for m in keep if m not in METHODS]
-            if bad:
-                raise ValueError(f"unknown methods {bad}; choose from {list(METHODS)}")
-            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge], keep)
+            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge], methods)
         except (OSError, ValueError, KeyError) as e:
             print(f"dsg-suite: error: {e}", file=sys.stderr)
             return 2
@@ -399,11 +401,6 @@ def main(argv: list[str] | None = None) -> int:
         _write_tables(args.out, r)
         print(json.dumps({"out": str(args.out), "mean_over_scenes": r["mean_over_scenes"]}))
         return 0
-    methods = [m for m in args.methods.split(",") if m]
-    bad = [m for m in methods if m not in METHODS]
-    if bad:
-        print(f"dsg-suite: error: unknown methods {bad}; choose from {list(METHODS)}", file=sys.stderr)
-        return 2
     synth = []
     for name in ("width", "height", "views", "test_views", "test_states"):
         v = getattr(args, name)

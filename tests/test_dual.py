@@ -307,13 +307,19 @@ def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
         assert rep["mean"][k] == np.mean([rep["states"][s]["mean"][k] for s in ("test_0", "test_1")])
     assert (tmp_path / "eval_all" / "test_1" / "grid.png").is_file()
     assert "| **mean** | 8 |" in (tmp_path / "eval_all" / "report.md").read_text()
-    # a single-state world keeps [recon]'s default, its held-out views; --state test asks for the test states
-    assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a1")]) == 0
-    assert json.loads((tmp_path / "eval_a1" / "report.json").read_text())["state"] == "state1"
-    assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a2"), "--state", "test"]) == 0
-    assert json.loads((tmp_path / "eval_a2" / "report.json").read_text())["states"]["test_0"]["mean"] == r_a
-    # baseline (b): kNN completion adds flat background Gaussians inside the state-1 footprints
+    # on a capture with test states both train on every view of their states (the test states evaluate them)
+    assert w.metadata["heldout_views_by_state"] == {"state1": [], "state2": []}
     wa = load_world(base)
+    assert wa.metadata["heldout_views"] == [] and wa.metadata["train_config"]["holdout_every"] == 0
+    # so dsg-eval evaluates the single-state world at the test states too (it has no held-out views of its own
+    # state to evaluate on); --state picks another state, all of whose views are evaluated
+    assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a1")]) == 0
+    assert json.loads((tmp_path / "eval_a1" / "report.json").read_text())["states"]["test_0"]["mean"] == r_a
+    assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a2"), "--state", "state1"]) == 2
+    assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a2"), "--state", "state2"]) == 0
+    rep = json.loads((tmp_path / "eval_a2" / "report.json").read_text())
+    assert rep["state"] == "state2" and rep["views"] == 16
+    # baseline (b): kNN completion adds flat background Gaussians inside the state-1 footprints
     wb = knn_complete(wa)
     added = wb.metadata["knn_completion"]["added"]
     assert added > 0 and wb.background.num == wa.background.num + added
@@ -457,3 +463,18 @@ def test_knn_completion_fills_the_hole_not_the_table_seen_around_the_object():
     everywhere = knn_complete(world, spacing=0.004, covered_opacity=1.01)  # the old behaviour: all of it
     r_all = np.linalg.norm(everywhere.background.means[bg.num:, :2], axis=1)
     assert r_all.max() > 0.035 and len(r_all) > len(added)
+
+
+def test_two_state_training_holds_out_views_only_when_the_capture_has_no_test_states(tiny, tmp_path):
+    from train_world.dual.cli import _parser, config_from_args, default_holdout_every
+
+    bare = tiny_capture(tmp_path, views=8, test_views=0, test_states=0)
+    assert default_holdout_every(tiny) == 0 and default_holdout_every(bare) == 8
+
+    def held(capture, *extra):
+        return config_from_args(_parser().parse_args([str(capture), "--out", "w.dsgw", *extra])).base.holdout_every
+
+    assert held(tiny) == 0 and held(bare) == 8  # without test states, every 8th view is kept to evaluate on
+    assert held(bare, "--holdout-every", "0") == 0 and held(tiny, "--holdout-every", "4") == 4
+    with pytest.raises(ValueError, match="holdout_every"):
+        held(tiny, "--holdout-every", "1")

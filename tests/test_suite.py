@@ -37,6 +37,9 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
         assert info["recon_phase_seconds"] == recon["wall_seconds"] and info["wall_seconds"] > recon["wall_seconds"]
         assert info["ablation"] == {"BC": "B+C", "BCP": "B+C+P"}[m]
         assert [info["iterations"], info["joint_from_step"]] == table["two_state_schedule"] == [40, recon["step"]]
+    # the suite's captures have test states: every training used all views of its states, (b) records (a)'s
+    assert {m: r["train"]["holdout_every"] for m, r in runs.items()} == {"a": 0, "b": 0, "BC": 0, "BCP": 0}
+    assert runs["BCP"]["train"]["training_views"] == [8, 8] and runs["a"]["train"]["training_views"] == [8]
     md = (out / "table.md").read_text()
     assert "ours: B+C+P" in md and "(a) single-state" in md and "**mean**" in md
     assert (out / "grids" / "two_blocks.png").stat().st_size > 0
@@ -140,3 +143,20 @@ def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
     assert two_state_schedule("default", 2000)[0] == 2000
     d = two_state_schedule("default", None)
     assert d[0] > d[1] > 0
+
+
+def test_merge_refuses_rows_that_held_out_different_views():
+    from train_world.suite import merge_tables
+
+    # before session 15 every training held out every 8th view (the records do not say); since, none
+    old = _table({"two_blocks": {"a": _run(29.0, 1), "BCP": _ours(36.0, 4500, 3000)},
+                  "five_small": {"a": _run(34.0, 1)}}, two_state_schedule=[4500, 3000])
+    new_rows = {m: _ours(p, 4500, 3000) for m, p in (("BCP", 36.2), ("a", 29.1))}
+    new_rows["a"]["train"] = {"wall_seconds": 1, "holdout_every": 0}
+    new_rows["BCP"]["train"]["holdout_every"] = 0
+    new = _table({"two_blocks": new_rows}, two_state_schedule=[4500, 3000])
+    assert merge_tables([old])["holdout_every"] == 8 and merge_tables([new])["holdout_every"] == 0
+    with pytest.raises(ValueError, match=r"held-out views.*0: two_blocks/a, two_blocks/BCP; 8: five_small/a"):
+        merge_tables([old, new])  # five_small's (a) would stay the old run's
+    m = merge_tables([old, new], ["BCP"])
+    assert m["holdout_every"] == 0 and m["scenes"] == {"two_blocks": {"BCP": new_rows["BCP"]}}

@@ -10,7 +10,8 @@ views of that state, objects placed at that state's poses (taken from the captur
 world does not hold them).
 
 ``--state test`` evaluates at every test state of the capture (its ``"test"`` split), each as with
-``--state``; that is the default for a two-state (DSG-World) world on a capture that has test states.
+``--state``; that is the default for a two-state (DSG-World) world on a capture that has test states, and for
+a world trained without held-out views (as ``dsg-train`` and the baselines train on such captures).
 
 Writes ``DIR/report.json`` (per-view figures and ``"mean": {"psnr", "ssim", "mask_iou"}``), ``DIR/report.md``
 (a Markdown table) and ``DIR/grid.png`` (rows of ground truth | ours | error [| GT mask | our mask]). With
@@ -347,8 +348,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--state",
         help="evaluate all views of this state at its object poses; 'test': every test state of the capture "
-        "(default: 'test' for a two-state world on a capture with test states, else the held-out views of "
-        "the training state)",
+        "(default: 'test' for a two-state world, or one trained without held-out views, on a capture with test "
+        "states; else the held-out views of the training state)",
     )
     p.add_argument("--suite", action="store_true",
                    help="instead: run the DSG-World comparison (dsg-suite); the other options are dsg-suite's")
@@ -356,8 +357,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _default_state(world_path: Path, capture: Path) -> str | None:
-    two_state = "dual" in load_world(world_path).metadata
-    return "test" if two_state and capture_test_states(capture) else None
+    meta = load_world(world_path).metadata
+    no_heldout = "dual" in meta or not meta.get("heldout_views")
+    return "test" if no_heldout and capture_test_states(capture) else None
 
 
 def main(argv: list[str] | None = None) -> int:

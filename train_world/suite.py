@@ -16,7 +16,9 @@ Writes ``OUT/table.md`` (methods x scenes, PSNR / SSIM / mask IoU, and the mean 
 The full suite takes hours; ``--merge`` joins the ``table.json`` files of runs that each did some of the
 scenes (made with the same settings) into one table, a later file's (scene, method) replacing an earlier one's;
 ``--methods`` picks the rows to keep. It refuses to mix rows of ours (B, B+C, B+C+P) trained with different
-two-state schedules (steps, first joint step: ``table.json``'s ``two_state_schedule`` and each training's record).
+two-state schedules (steps, first joint step: ``table.json``'s ``two_state_schedule`` and each training's record),
+and rows of any method that held out different views of the training states (``holdout_every`` in each
+training's record: 0 since session 15, as every suite capture has test states; 8 before).
 
 Examples::
 
@@ -87,15 +89,30 @@ def _provenance() -> dict[str, Any]:
 def two_state_schedule(preset: str, iterations: int | None) -> list[int]:
     """[steps, first joint step] of ``dsg-train``'s two-state run with this preset and ``--iterations``."""
     from train_world.dual.cli import scaled_preset
+    from train_world.dual.trainer import joint_start_step
 
     p = scaled_preset(preset, iterations, two_state=True)
-    return [p.iterations, round(p.dual_joint_from * p.iterations)]
+    return [p.iterations, joint_start_step(p.dual_joint_from, p.iterations)]
 
 
 _OURS = ("B", "BC", "BCP")
 # what dsg-train did before table.json recorded its schedule (until session 13): the joint phase from half the
 # steps, and ``default`` trained 3000 two-state steps
 _LEGACY_DEFAULT_STEPS = 3000
+# and every training (baselines too) held out every 8th view of each state (until session 15)
+_LEGACY_HOLDOUT = 8
+
+
+def _one_value(values: dict[tuple[str, str], Any], what: str) -> Any:
+    """The one value that every (scene, method) row of ``values`` has (None when there are no rows); raises
+    ``ValueError`` starting with ``what`` and listing which rows have which value when they differ."""
+    distinct = sorted(set(values.values()))
+    if len(distinct) > 1:
+        where = {d: [f"{s}/{m}" for (s, m), v in values.items() if v == d] for d in distinct}
+        shown = "; ".join(f"{list(d) if isinstance(d, tuple) else d}: {', '.join(w[:3])}"
+                          f"{' ...' if len(w) > 3 else ''}" for d, w in where.items())
+        raise ValueError(f"{what} ({shown}); rerun them or leave some out with --methods")
+    return distinct[0] if distinct else None
 
 
 def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]:
@@ -113,8 +130,9 @@ def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]
 def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None) -> dict[str, Any]:
     """One table from several suite runs' ``table.json`` dictionaries (in order: a later run's (scene, method)
     replaces an earlier one's), keeping ``methods`` (None: all). Raises ``ValueError`` naming the setting when
-    the runs' settings differ, or when the rows kept for ours (B, B+C, B+C+P) were trained with different
-    two-state schedules (steps, first joint step)."""
+    the runs' settings differ, when the rows kept for ours (B, B+C, B+C+P) were trained with different
+    two-state schedules (steps, first joint step), or when the rows kept held out different views
+    (``holdout_every`` of their training records; tables before session 15: 8)."""
     if not tables:
         raise ValueError("merge needs at least one table.json")
     first = tables[0]
@@ -126,6 +144,7 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
     out: dict[str, Any] = {k: first.get(k) for k in _SETTINGS}
     out.update(scenes={}, methods=[], provenance=[])
     schedules: dict[tuple[str, str], tuple[int, ...]] = {}
+    holdouts: dict[tuple[str, str], int] = {}
     for t in tables:
         out["provenance"].extend(t["provenance"] if isinstance(t.get("provenance"), list) else [t.get("provenance")])
         for m in t.get("methods", []):
@@ -136,16 +155,14 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
             if kept:
                 out["scenes"].setdefault(scene, {}).update(kept)
             for m, r in kept.items():
+                holdouts[(scene, m)] = int((r.get("train") or {}).get("holdout_every", _LEGACY_HOLDOUT))
                 if m in _OURS:
                     schedules[(scene, m)] = _row_schedule(r, t)
-    distinct = sorted(set(schedules.values()))
-    if len(distinct) > 1:
-        where = {d: [f"{s}/{m}" for (s, m), v in schedules.items() if v == d] for d in distinct}
-        shown = "; ".join(f"{list(d) or 'unknown'}: {', '.join(w[:3])}{' ...' if len(w) > 3 else ''}"
-                          for d, w in where.items())
-        raise ValueError(f"ours' rows were trained with different two-state schedules [steps, first joint step] "
-                         f"({shown}); rerun them or leave some out with --methods")
-    out["two_state_schedule"] = list(distinct[0]) if distinct and distinct[0] else None
+    schedule = _one_value(schedules, "ours' rows were trained with different two-state schedules "
+                                     "[steps, first joint step]")
+    out["two_state_schedule"] = list(schedule) if schedule else None
+    out["holdout_every"] = _one_value(holdouts, "rows were trained with different held-out views per state "
+                                                "(holdout_every)")
     known = _scene_list("all")  # the default scenes in their usual order, then any others
     order = [s for s in known if s in out["scenes"]] + sorted(s for s in out["scenes"] if s not in known)
     out["scenes"] = {s: out["scenes"][s] for s in order}

@@ -12,7 +12,9 @@ Examples::
 
 ``--iterations N`` scales the preset's whole schedule (densification window, opacity resets, SH degree steps,
 checkpoint interval) to ``N`` steps. Each step trains both fields; the first ``--joint-from`` fraction is
-reconstruction only. Checkpoints go to ``WORLD.ckpt`` (override with ``--checkpoint``).
+reconstruction only. Checkpoints go to ``WORLD.ckpt`` (override with ``--checkpoint``). Every view of both
+states trains when the capture has test states (their cameras are what ``dsg-eval`` measures); without test
+states every 8th view of each state is held out for evaluation (``--holdout-every``).
 """
 
 from __future__ import annotations
@@ -28,7 +30,10 @@ from pathlib import Path
 from train_world.recon.cli import add_depth_argument, add_mip_argument, depth_overrides
 from train_world.recon.presets import PRESETS, Preset, TrainConfig, get_preset, mip_overrides
 
-__all__ = ["has_two_training_states", "main", "scaled_preset", "wants_two_state"]
+__all__ = ["default_holdout_every", "has_two_training_states", "main", "scaled_preset", "wants_two_state"]
+
+#: views held out of each training state (every n-th) when the capture has no test states to evaluate on
+HOLDOUT_WITHOUT_TEST_STATES = 8
 
 _SCHEDULE = (
     "densify_from",
@@ -81,6 +86,16 @@ def has_two_training_states(path: str | Path) -> bool:
     return all(cap.splits.get(s) == "train" for s in ("state1", "state2"))
 
 
+def default_holdout_every(path: str | Path) -> int:
+    """Views held out of each training state by default: none (0) when the capture has test states, whose
+    cameras are the evaluation (``dsg-eval``), so every captured view trains; else every
+    :data:`HOLDOUT_WITHOUT_TEST_STATES`-th view, to have held-out views to evaluate on."""
+    from train_world.data import load_capture
+
+    cap = load_capture(Path(path), states=[], load_depth=False)  # metadata only
+    return 0 if any(split == "test" for split in cap.splits.values()) else HOLDOUT_WITHOUT_TEST_STATES
+
+
 def wants_two_state(argv: list[str]) -> bool:
     """The single-state ``dsg-train`` command line ``argv`` names a capture with two training states and
     neither ``--single-state`` nor ``--state`` (nor help): hand it to :func:`main`."""
@@ -110,7 +125,10 @@ def _parser() -> argparse.ArgumentParser:
         "--max-gaussians", type=int, help="cap on each field's Gaussian count (default: the preset's two-state cap)"
     )
     p.add_argument("--downscale", type=int, default=1)
-    p.add_argument("--holdout-every", type=int, default=8, help="hold out every n-th view of each state")
+    p.add_argument(
+        "--holdout-every", type=int, help="hold out every n-th view of each state (0: none; default: none "
+        f"when the capture has test states, else {HOLDOUT_WITHOUT_TEST_STATES})"
+    )
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
     add_mip_argument(p)
     add_depth_argument(p)
@@ -159,7 +177,7 @@ def config_from_args(args: argparse.Namespace):
         preset=preset,
         seed=args.seed,
         downscale=args.downscale,
-        holdout_every=args.holdout_every,
+        holdout_every=default_holdout_every(args.capture) if args.holdout_every is None else args.holdout_every,
         background=None if args.background is None else tuple(args.background),
     )
     return DualConfig(
@@ -226,6 +244,8 @@ def main(argv: list[str] | None = None) -> int:
         "ablation": config.ablation,
         "iterations": trainer.step,
         "joint_from_step": trainer.joint_start,
+        "holdout_every": config.base.holdout_every,
+        "training_views": [len(trainer.data1), len(trainer.data2)],
         "gaussians": int(world.metadata["num_gaussians"]),
         "field_sizes": dual["field_sizes"],
         "object_sources": dual["object_sources"],

@@ -45,7 +45,13 @@ from .merge import co_prune_masks, object_footprints_xy, robust_object_points
 from .pseudo import footprint_radii, sample_pseudo_state
 from .transfer import ObjectTransfer, gaussian_transforms, object_labels, relative_transforms
 
-__all__ = ["DualConfig", "DualTrainer"]
+__all__ = ["DualConfig", "DualTrainer", "joint_start_step"]
+
+
+def joint_start_step(joint_from: float, iterations: int) -> int:
+    """The first joint step of a two-state run of ``iterations`` steps whose first ``joint_from`` fraction is
+    reconstruction only."""
+    return round(joint_from * iterations)
 
 
 @dataclass(frozen=True)
@@ -142,7 +148,7 @@ class DualTrainer:
     # ------------------------------------------------------------------ helpers
     @property
     def joint_start(self) -> int:
-        return round(self.config.joint_from * self.preset.iterations)
+        return joint_start_step(self.config.joint_from, self.preset.iterations)
 
     @property
     def fields(self) -> tuple[SegmentedField, SegmentedField]:

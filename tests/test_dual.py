@@ -404,12 +404,13 @@ def test_two_state_training_has_its_own_step_count_and_field_cap():
     assert (d.iterations, d.max_gaussians) == (p.dual_iterations, p.dual_max_gaussians)
     f = p.dual_iterations / p.iterations  # the whole schedule follows the step count
     assert (d.densify_until, d.reset_every) == (round(p.densify_until * f), round(p.reset_every * f))
-    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(["cap", "--out", "x"]))
+    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(["cap", "--out", "x", "--holdout-every", "8"]))
     assert cfg.base.preset == d  # what dsg-train on two states uses by default
     # the joint phase starts at the preset's fraction unless --joint-from says otherwise
     assert cfg.joint_from == p.dual_joint_from and 0.5 <= p.dual_joint_from < 1
     assert round(cfg.joint_from * d.iterations) == round(p.dual_iterations * p.dual_joint_from)
-    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(["cap", "--out", "x", "--joint-from", "0.25"]))
+    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(["cap", "--out", "x", "--holdout-every", "8",
+                                                                   "--joint-from", "0.25"]))
     assert cfg.joint_from == 0.25
     assert get_preset("paper").dual_joint_from == 0.5  # DSG-World's 10k + 10k
     with pytest.raises(ValueError, match="dual_joint_from"):

@@ -125,7 +125,8 @@ _AA = {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": 0.
 # ``default`` trains two states (DSG-World) for 4500 steps, the first 3000 reconstruction only (a reconstruction
 # step renders two views, a joint step about five), with at most 60k Gaussians per field: on two_blocks (dsg-synth
 # 1.3) 36.04 dB at the test states in 10.7 min here, against 35.49 dB in 8.4 min for 1500 + 1500 steps and
-# 35.62 dB in 11.9 min for 4000 + 1000 (session 14).
+# 35.62 dB in 11.9 min for 4000 + 1000 (session 14), all with 42 of each state's 48 views; training on all 48
+# (``dsg-train``'s default on captures with test states since session 15) gives 36.23 dB.
 PRESETS: dict[str, Preset] = {
     "quick": Preset(
         name="quick",

@@ -120,6 +120,21 @@ def test_bad_world_is_refused(trained, tmp_path, capsys):
     assert not (tmp_path / "o" / "report.json").exists()
 
 
+def test_default_views_follow_what_the_world_held_out(trained, tmp_path, monkeypatch):
+    cap, world, _ = trained
+    assert ev._default_state(world, cap) is None  # a single-state world with held-out views: those
+    meta = {"heldout_views": []}
+    monkeypatch.setattr(ev, "load_world", lambda p: type("W", (), {"metadata": meta})())
+    assert ev._default_state(world, cap) == "test"  # none held out: the capture's test states
+    blender = tmp_path / "blender"
+    blender.mkdir()
+    (blender / "transforms_train.json").write_text("{}")
+    assert ev._default_state(world, blender) is None  # NeRF-Blender data: its test split, no capture to read
+    meta["dual"] = {}
+    meta["heldout_views"] = [0]
+    assert ev._default_state(world, cap) == "test"  # a two-state world: always the test states
+
+
 @pytest.mark.skipif(not LEGO.is_dir(), reason="shared NeRF-Blender lego data not present")
 def test_blender_world_evaluates_on_the_test_split(tmp_path):
     world = tmp_path / "lego.dsgw"

@@ -358,8 +358,11 @@ def _parser() -> argparse.ArgumentParser:
 
 def _default_state(world_path: Path, capture: Path) -> str | None:
     meta = load_world(world_path).metadata
-    no_heldout = "dual" in meta or not meta.get("heldout_views")
-    return "test" if no_heldout and capture_test_states(capture) else None
+    if "dual" not in meta and meta.get("heldout_views"):
+        return None  # its own held-out views
+    if not (Path(capture) / "scene.json").is_file():
+        return None  # NeRF-Blender data: its test split
+    return "test" if capture_test_states(capture) else None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -118,13 +118,16 @@ def _one_value(values: dict[tuple[str, str], Any], what: str) -> Any:
 def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]:
     """(steps, first joint step) that trained one of ours' rows: from its training record, else the table's;
     () when neither tells."""
+    from train_world.dual.trainer import joint_start_step
+
     train = row.get("train") or {}
     if "iterations" in train:
-        return int(train["iterations"]), int(train.get("joint_from_step", train["iterations"] // 2))
+        steps = int(train["iterations"])
+        return steps, int(train.get("joint_from_step", joint_start_step(0.5, steps)))
     if table.get("two_state_schedule"):
         return tuple(table["two_state_schedule"])
     steps = table.get("iterations") or (_LEGACY_DEFAULT_STEPS if table.get("preset") == "default" else None)
-    return () if steps is None else (int(steps), int(steps) // 2)
+    return () if steps is None else (int(steps), joint_start_step(0.5, int(steps)))
 
 
 def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None) -> dict[str, Any]:

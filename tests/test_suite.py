@@ -36,7 +36,8 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
         info = runs[m]["train"]
         assert info["recon_phase_seconds"] == recon["wall_seconds"] and info["wall_seconds"] > recon["wall_seconds"]
         assert info["ablation"] == {"BC": "B+C", "BCP": "B+C+P"}[m]
-        assert [info["iterations"], info["joint_from_step"]] == table["two_state_schedule"] == [40, recon["step"]]
+        assert ([info["iterations"], info["joint_from_step"], info["refine_steps"]] == table["two_state_schedule"]
+                == [40, recon["step"], 40])  # quick: 40 refinement steps after merging
     # the suite's captures have test states: every training used all views of its states, (b) records (a)'s
     assert {m: r["train"]["holdout_every"] for m, r in runs.items()} == {"a": 0, "b": 0, "BC": 0, "BCP": 0}
     assert runs["BCP"]["train"]["training_views"] == [8, 8] and runs["a"]["train"]["training_views"] == [8]
@@ -120,12 +121,12 @@ def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
                   "five_small": {"a": _run(34.0, 1), "BCP": _ours(38.0, 3000, None)}})
     new = _table({"two_blocks": {"BCP": _ours(36.0, 4500, 3000)}, "five_small": {"BCP": _ours(38.5, 4500, 3000)}},
                  two_state_schedule=[4500, 3000])
-    assert merge_tables([old])["two_state_schedule"] == [3000, 1500]
-    with pytest.raises(ValueError, match=r"two-state schedules.*\[3000, 1500\]: two_blocks/B"):
+    assert merge_tables([old])["two_state_schedule"] == [3000, 1500, 0]
+    with pytest.raises(ValueError, match=r"two-state schedules.*\[3000, 1500, 0\]: two_blocks/B"):
         merge_tables([old, new])  # old B beside new B+C+P
     m = merge_tables([old, new], ["a", "BCP"])  # (a) does not depend on it: old (a) rows join new ones
     assert m["methods"] == ["a", "BCP"] and "B" not in m["scenes"]["two_blocks"]
-    assert m["two_state_schedule"] == [4500, 3000]
+    assert m["two_state_schedule"] == [4500, 3000, 0]
     assert m["scenes"]["two_blocks"]["BCP"]["mean"]["psnr"] == 36.0 and m["scenes"]["five_small"]["a"]
     partial = _table({"two_blocks": {"BCP": _ours(36.0, 4500, 3000)}}, two_state_schedule=[4500, 3000])
     with pytest.raises(ValueError, match="five_small/BCP"):  # five_small's B+C+P would stay the old run's
@@ -138,11 +139,16 @@ def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
     assert not (tmp_path / "bad").exists()
     assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p_old), "--methods", "a,X"]) == 2
     assert suite_main(["--out", str(tmp_path / "ok"), "--merge", str(p_old), str(p_new), "--methods", "a,BCP"]) == 0
-    assert json.loads((tmp_path / "ok" / "table.json").read_text())["two_state_schedule"] == [4500, 3000]
+    assert json.loads((tmp_path / "ok" / "table.json").read_text())["two_state_schedule"] == [4500, 3000, 0]
+    # rows refined after merging (session 16 on) do not mix with unrefined ones
+    refined = _ours(37.5, 4500, 3000)
+    refined["train"]["refine_steps"] = 4000
+    with pytest.raises(ValueError, match=r"\[4500, 3000, 0\]: five_small/BCP; \[4500, 3000, 4000\]: two_blocks/BCP"):
+        merge_tables([new, _table({"two_blocks": {"BCP": refined}}, two_state_schedule=[4500, 3000, 4000])])
     # what a suite run records: the schedule dsg-train resolves from the preset and --iterations
     assert two_state_schedule("default", 2000)[0] == 2000
     d = two_state_schedule("default", None)
-    assert d[0] > d[1] > 0
+    assert d[0] > d[1] > 0 and d[2] == 4000
 
 
 def test_merge_refuses_rows_that_held_out_different_views():

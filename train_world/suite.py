@@ -16,7 +16,7 @@ Writes ``OUT/table.md`` (methods x scenes, PSNR / SSIM / mask IoU, and the mean 
 The full suite takes hours; ``--merge`` joins the ``table.json`` files of runs that each did some of the
 scenes (made with the same settings) into one table, a later file's (scene, method) replacing an earlier one's;
 ``--methods`` picks the rows to keep. It refuses to mix rows of ours (B, B+C, B+C+P) trained with different
-two-state schedules (steps, first joint step: ``table.json``'s ``two_state_schedule`` and each training's record),
+two-state schedules (steps, first joint step, refinement steps: ``table.json``'s ``two_state_schedule`` and each training's record),
 and rows of any method that held out different views of the training states (``holdout_every`` in each
 training's record: 0 since session 15, as every suite capture has test states; 8 before).
 
@@ -87,12 +87,13 @@ def _provenance() -> dict[str, Any]:
 
 
 def two_state_schedule(preset: str, iterations: int | None) -> list[int]:
-    """[steps, first joint step] of ``dsg-train``'s two-state run with this preset and ``--iterations``."""
+    """[steps, first joint step, refinement steps] of ``dsg-train``'s two-state run with this preset and
+    ``--iterations``."""
     from train_world.dual.cli import scaled_preset
     from train_world.dual.trainer import joint_start_step
 
     p = scaled_preset(preset, iterations, two_state=True)
-    return [p.iterations, joint_start_step(p.dual_joint_from, p.iterations)]
+    return [p.iterations, joint_start_step(p.dual_joint_from, p.iterations), p.dual_refine_steps]
 
 
 _OURS = ("B", "BC", "BCP")
@@ -116,18 +117,19 @@ def _one_value(values: dict[tuple[str, str], Any], what: str) -> Any:
 
 
 def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]:
-    """(steps, first joint step) that trained one of ours' rows: from its training record, else the table's;
-    () when neither tells."""
+    """(steps, first joint step, refinement steps) that trained one of ours' rows: from its training record,
+    else the table's (records and tables before session 16 had no refinement: 0); () when neither tells."""
     from train_world.dual.trainer import joint_start_step
 
     train = row.get("train") or {}
     if "iterations" in train:
         steps = int(train["iterations"])
-        return steps, int(train.get("joint_from_step", joint_start_step(0.5, steps)))
+        return (steps, int(train.get("joint_from_step", joint_start_step(0.5, steps))),
+                int(train.get("refine_steps", 0)))
     if table.get("two_state_schedule"):
-        return tuple(table["two_state_schedule"])
+        return (tuple(table["two_state_schedule"]) + (0,))[:3]
     steps = table.get("iterations") or (_LEGACY_DEFAULT_STEPS if table.get("preset") == "default" else None)
-    return () if steps is None else (int(steps), joint_start_step(0.5, int(steps)))
+    return () if steps is None else (int(steps), joint_start_step(0.5, int(steps)), 0)
 
 
 def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None) -> dict[str, Any]:
@@ -162,7 +164,7 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
                 if m in _OURS:
                     schedules[(scene, m)] = _row_schedule(r, t)
     schedule = _one_value(schedules, "ours' rows were trained with different two-state schedules "
-                                     "[steps, first joint step]")
+                                     "[steps, first joint step, refinement steps]")
     out["two_state_schedule"] = list(schedule) if schedule else None
     out["holdout_every"] = _one_value(holdouts, "rows were trained with different held-out views per state "
                                                 "(holdout_every)")

@@ -14,7 +14,9 @@ Examples::
 checkpoint interval) to ``N`` steps. Each step trains both fields; the first ``--joint-from`` fraction is
 reconstruction only. Checkpoints go to ``WORLD.ckpt`` (override with ``--checkpoint``). Every view of both
 states trains when the capture has test states (their cameras are what ``dsg-eval`` measures); without test
-states every 8th view of each state is held out for evaluation (``--holdout-every``).
+states every 8th view of each state is held out for evaluation (``--holdout-every``). After merging, the world
+is refined on both states' training views (``--refine-steps``, :mod:`train_world.dual.refine`; not part of
+DSG-World: the ``paper`` preset leaves it off).
 """
 
 from __future__ import annotations
@@ -149,6 +151,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--pseudo-every", type=int, default=2, help="pseudo-state loss every n-th joint step (default 2; paper: 1)"
     )
+    p.add_argument(
+        "--refine-steps", type=int, metavar="N", help="after merging, refine the world on both states' training "
+        "views for N steps (not DSG-World's; 0: off; default: the preset's, 4000 for default, 0 for paper)"
+    )
     p.add_argument("--checkpoint", type=Path, help="checkpoint file (default: WORLD.ckpt)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
     p.add_argument(
@@ -199,12 +205,17 @@ def main(argv: list[str] | None = None) -> int:
     from train_world.recon.checkpoint import CheckpointError
     from train_world.recon.trainer import TrainingDiverged
 
+    from .refine import RefineConfig, StateViews, refine_world
     from .trainer import DualTrainer
 
     ckpt = args.checkpoint or args.out.with_name(args.out.name + ".ckpt")
     t0 = time.perf_counter()
     try:
         config = config_from_args(args)
+        refine = RefineConfig(
+            steps=config.base.preset.dual_refine_steps if args.refine_steps is None else args.refine_steps,
+            seed=args.seed,
+        )
         args.out.parent.mkdir(parents=True, exist_ok=True)
         trainer = DualTrainer(args.capture, config, checkpoint=ckpt)
         if args.resume and ckpt.exists():
@@ -229,10 +240,12 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         trainer.train(progress=not args.quiet)
         world = trainer.world()
+        views = {d.state: StateViews(d.images, d.viewmats, d.Ks) for d in (trainer.data1, trainer.data2)}
+        world, refined = refine_world(world, views, refine, progress=not args.quiet)
         from train_world.world_writer import write_world
 
         write_world(args.out, world)
-    except TrainingDiverged as e:
+    except (TrainingDiverged, FloatingPointError) as e:
         print(f"dsg-train: error: training diverged: {e}", file=sys.stderr)
         return 3
     except (ValueError, CheckpointError, FileNotFoundError) as e:
@@ -251,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
         "object_sources": dual["object_sources"],
         "background_from_2": dual["background_from_2"],
         "train_seconds": round(trainer.elapsed, 1),
+        "refine_steps": refine.steps,
+        "refine_seconds": refined.get("seconds", 0.0),
         "wall_seconds": round(time.perf_counter() - t0, 1),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "last_train_psnr": trainer.history[-1]["psnr"] if trainer.history else None,

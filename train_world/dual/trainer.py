@@ -54,6 +54,13 @@ def joint_start_step(joint_from: float, iterations: int) -> int:
     return round(joint_from * iterations)
 
 
+def _training_options(config: DualConfig) -> DualConfig:
+    """``config`` without what only acts after training (the refinement's step count), for comparing a
+    checkpoint's options with a run's."""
+    preset = dataclasses.replace(config.base.preset, dual_refine_steps=0)
+    return dataclasses.replace(config, base=dataclasses.replace(config.base, preset=preset))
+
+
 @dataclass(frozen=True)
 class DualConfig:
     """Two-state training options. ``base``: the reconstruction configuration (preset, seed, ...; its
@@ -376,10 +383,11 @@ class DualTrainer:
         tensors, meta = load_checkpoint(path)
         if meta.get("kind") != "dual":
             raise ValueError(f"{path}: not a two-state (dual) checkpoint")
-        stored = DualConfig.from_dict(meta["dual_config"])
+        stored = _training_options(DualConfig.from_dict(meta["dual_config"]))
+        current = _training_options(self.config)
         if branch:
             switches = {k: getattr(self.config, k) for k in ("use_align", "use_prune", "use_pseudo")}
-            if dataclasses.replace(stored, **switches) != self.config:
+            if dataclasses.replace(stored, **switches) != current:
                 raise ValueError(
                     f"{path}: can only branch from a checkpoint whose options differ in B/C/P alone"
                 )
@@ -388,7 +396,7 @@ class DualTrainer:
                     f"{path}: checkpoint is at step {meta['step']}, past the start of the joint phase "
                     f"({self.joint_start}); branching would not reproduce a separate run"
                 )
-        elif stored != self.config:
+        elif stored != current:
             raise ValueError(
                 f"{path}: checkpoint was made with different options; use the same options to resume"
             )

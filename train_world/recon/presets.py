@@ -77,6 +77,9 @@ class Preset:
     dual_max_gaussians: int | None = None
     # fraction of the two-state steps that is reconstruction only (DSG-World: 0.5, 10k + 10k)
     dual_joint_from: float = 0.5
+    # not DSG-World's: Adam steps refining the merged world on both states' training views after training
+    # (:mod:`train_world.dual.refine`; 0: off, as in the paper)
+    dual_refine_steps: int = 0
     lrs: LearningRates = field(default_factory=LearningRates)
 
     def __post_init__(self) -> None:
@@ -98,6 +101,8 @@ class Preset:
                 raise ValueError(f"preset {self.name!r}: {name} must be >= 1")
         if not 0.0 <= self.dual_joint_from <= 1.0:
             raise ValueError(f"preset {self.name!r}: dual_joint_from must be in [0, 1], got {self.dual_joint_from}")
+        if self.dual_refine_steps < 0:
+            raise ValueError(f"preset {self.name!r}: dual_refine_steps must be >= 0, got {self.dual_refine_steps}")
         for name in ("dual_iterations", "dual_max_gaussians"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"preset {self.name!r}: {name} must be >= 1 or None")
@@ -126,7 +131,8 @@ _AA = {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": 0.
 # step renders two views, a joint step about five), with at most 60k Gaussians per field: on two_blocks (dsg-synth
 # 1.3) 36.04 dB at the test states in 10.7 min here, against 35.49 dB in 8.4 min for 1500 + 1500 steps and
 # 35.62 dB in 11.9 min for 4000 + 1000 (session 14), all with 42 of each state's 48 views; training on all 48
-# (``dsg-train``'s default on captures with test states since session 15) gives 36.23 dB.
+# (``dsg-train``'s default on captures with test states since session 15) gives 36.23 dB. Then 4000 steps refine
+# the merged world on both states' views (:mod:`train_world.dual.refine`, about 3 min): 37.93 dB (session 16).
 PRESETS: dict[str, Preset] = {
     "quick": Preset(
         name="quick",
@@ -142,6 +148,7 @@ PRESETS: dict[str, Preset] = {
         reg3d_every=5,
         reg3d_samples=200,
         checkpoint_every=50,
+        dual_refine_steps=40,
     ),
     "default": Preset(
         name="default",
@@ -160,6 +167,7 @@ PRESETS: dict[str, Preset] = {
         dual_iterations=4500,
         dual_max_gaussians=60_000,
         dual_joint_from=2 / 3,
+        dual_refine_steps=4000,
         **_AA,
     ),
     "paper": Preset(

@@ -1,0 +1,142 @@
+"""Refinement of a merged two-state world on both states' training views (train_world.dual.refine)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dsg_gym.world import load_world
+from tests._captures import tiny_capture
+from train_world.dual import cli as dual_cli
+from train_world.dual.refine import RefineConfig, StateViews, main as refine_main, refine_world, training_views_of
+from train_world.evaluate import render_gaussians
+
+
+@pytest.fixture(scope="module")
+def unrefined(tmp_path_factory):
+    d = tmp_path_factory.mktemp("refine")
+    cap = tiny_capture(d / "cap", test_views=2, test_states=1)
+    out = d / "w.dsgw"
+    assert dual_cli.main([str(cap), "--out", str(out), "--preset", "quick", "--iterations", "60",
+                          "--prune-every", "10", "--refine-steps", "0", "--quiet"]) == 0
+    return cap, out
+
+
+def _train_error(world, views) -> dict[str, float]:
+    """Mean squared error of the world over every training view, per state."""
+    bg = tuple(world.metadata["background"])
+    out = {}
+    for s, v in views.items():
+        g = world.gaussians(poses=world.poses[s])
+        h, w = v.images.shape[1:3]
+        rgb, _ = render_gaussians(g, v.viewmats.numpy(), v.Ks.numpy(), w, h, bg, world.splat_options)
+        out[s] = float(((rgb - v.images.numpy()) ** 2).mean())
+    return out
+
+
+def _arrays(world):
+    parts = [world.background] + [world.objects[i].gaussians for i in world.object_ids]
+    return [np.concatenate([getattr(p, k).reshape(p.num, -1) for k in ("means", "quats", "scales", "opacities", "sh",
+                                                                      "features")], 1) for p in parts]
+
+
+def test_refinement_fits_both_states_and_keeps_the_world_s_structure(unrefined):
+    cap, path = unrefined
+    world = load_world(path)
+    assert "refine" not in world.metadata or world.metadata["refine"]["steps"] == 0
+    views = training_views_of(world, cap)
+    assert set(views) == {"state1", "state2"} and all(v.images.shape[0] == 16 for v in views.values())
+    before = _arrays(world)
+    same, info = refine_world(world, views, RefineConfig(steps=0))
+    assert same is world and info == {"steps": 0}
+    refined, info = refine_world(world, views, RefineConfig(steps=60))
+    assert all(np.array_equal(a, b) for a, b in zip(before, _arrays(world)))  # the input world is untouched
+    e0, e1 = _train_error(world, views), _train_error(refined, views)
+    assert all(e1[s] < 0.9 * e0[s] for s in e0), (e0, e1)  # both states' views fit better
+    assert info["steps"] == 60 and info["loss_last"] < info["loss_first"] and info["states"] == ["state1", "state2"]
+    assert refined.metadata["refine"] == {k: v for k, v in info.items() if k != "seconds"} and info["seconds"] > 0
+    # what refinement must not touch: counts, identity features, labels, poses, cameras, classifier
+    assert refined.background.num == world.background.num
+    for i in world.object_ids:
+        a, b = world.objects[i].gaussians, refined.objects[i].gaussians
+        assert b.num == a.num and np.array_equal(b.features, a.features) and np.array_equal(b.labels, a.labels)
+        # still in the object's own frame: centres move by millimetres, not by the object's pose
+        assert np.abs(b.means - a.means).max() < 0.02
+        assert np.allclose(np.linalg.norm(b.quats, axis=1), 1.0, atol=1e-5)
+        assert np.all(np.isfinite(b.sh)) and np.all((b.opacities >= 0) & (b.opacities <= 1))
+    assert all(np.array_equal(refined.poses[s], world.poses[s]) for s in world.poses)
+    assert np.array_equal(refined.classifier_weight, world.classifier_weight)
+    # deterministic
+    again, _ = refine_world(world, views, RefineConfig(steps=60))
+    assert all(np.array_equal(a, b) for a, b in zip(_arrays(refined), _arrays(again)))
+
+
+def test_refinement_rejects_bad_input_and_leaves_the_world_alone(unrefined):
+    cap, path = unrefined
+    world = load_world(path)
+    views = training_views_of(world, cap)
+    with pytest.raises(ValueError, match="no poses for state 'nowhere'"):
+        refine_world(world, {"nowhere": views["state1"]})
+    bad = views["state2"].images.clone()
+    bad[0, 1, 2, 0] = float("nan")
+    with pytest.raises(ValueError, match="state 'state2': images have NaN"):
+        refine_world(world, {**views, "state2": StateViews(bad, views["state2"].viewmats, views["state2"].Ks)})
+    with pytest.raises(ValueError, match="viewmats"):
+        refine_world(world, {"state1": StateViews(views["state1"].images, views["state1"].viewmats[:2],
+                                                  views["state1"].Ks)})
+    with pytest.raises(ValueError, match="no training views"):
+        refine_world(world, {})
+    with pytest.raises(ValueError, match="steps must be an integer >= 0"):
+        RefineConfig(steps=-1)
+    with pytest.raises(ValueError, match="lr_sh0"):
+        RefineConfig(lr_sh0=float("nan"))
+    assert "refine" not in world.metadata or world.metadata["refine"]["steps"] == 0
+
+
+def test_dsg_train_refines_like_the_standalone_command(unrefined, tmp_path, capsys):
+    cap, path = unrefined
+    # dsg-train with refinement = the same training without it, then `python -m train_world.dual.refine`
+    inproc = tmp_path / "in.dsgw"
+    assert dual_cli.main([str(cap), "--out", str(inproc), "--preset", "quick", "--iterations", "60",
+                          "--prune-every", "10", "--refine-steps", "25", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["refine_steps"] == 25 and summary["refine_seconds"] > 0
+    after = tmp_path / "after.dsgw"
+    assert refine_main([str(path), str(cap), "--out", str(after), "--steps", "25", "--quiet"]) == 0
+    a, b = load_world(inproc), load_world(after)
+    assert all(np.array_equal(x, y) for x, y in zip(_arrays(a), _arrays(b)))
+    assert a.metadata["refine"]["steps"] == b.metadata["refine"]["steps"] == 25
+    # a refined world is not refined twice; a single-state world is refused with the reason
+    assert refine_main([str(after), str(cap), "--out", str(tmp_path / "x.dsgw"), "--quiet"]) == 2
+    assert "refined already" in capsys.readouterr().err
+    single = tmp_path / "single.dsgw"
+    from train_world.baselines import train_single_state
+
+    train_single_state(cap, single, preset="quick", iterations=20)
+    assert refine_main([str(single), str(cap), "--out", str(tmp_path / "x.dsgw"), "--quiet"]) == 2
+    assert "not a two-state world" in capsys.readouterr().err
+    assert not (tmp_path / "x.dsgw").exists()
+
+
+def test_refinement_steps_do_not_block_resuming_or_branching(unrefined, tmp_path):
+    cap, _ = unrefined
+    ck = tmp_path / "recon.ckpt"
+    common = [str(cap), "--preset", "quick", "--iterations", "60", "--prune-every", "10", "--quiet"]
+    assert dual_cli.main([*common, "--out", str(tmp_path / "r.dsgw"), "--stop-at-joint", "--checkpoint", str(ck),
+                          "--refine-steps", "0"]) == 0
+    # the checkpoint was made by a run that would not refine; a refining run still branches from it
+    assert dual_cli.main([*common, "--out", str(tmp_path / "b.dsgw"), "--branch-from", str(ck),
+                          "--refine-steps", "5"]) == 0
+    assert load_world(tmp_path / "b.dsgw").metadata["refine"]["steps"] == 5
+    assert dual_cli.main([*common, "--out", str(tmp_path / "c.dsgw"), "--refine-steps", "-3"]) == 2
+
+
+def test_presets_refine_by_default_except_the_paper_s():
+    from train_world.recon.presets import get_preset
+
+    assert get_preset("default").dual_refine_steps == 4000 and get_preset("paper").dual_refine_steps == 0
+    assert get_preset("quick").dual_refine_steps > 0
+    with pytest.raises(ValueError, match="dual_refine_steps"):
+        get_preset("quick", dual_refine_steps=-1)

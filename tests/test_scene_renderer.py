@@ -107,6 +107,26 @@ def test_single_threaded_kernels_render_the_same_bits(setup):
         SceneRenderer(bg, objs, vm, K, W, H, parallel="auto")
 
 
+def test_borrow_is_the_same_memory_without_an_owner():
+    import numba as nb
+
+    from dsg_gym.splat._numba_raster import borrow
+
+    @nb.njit
+    def touch(a):
+        b = borrow(a)
+        row = b[1]  # a view of the borrowed array
+        row[2] += 10.0
+        return b.shape, b.strides, row.sum()
+
+    a = np.arange(12, dtype=np.float32).reshape(3, 4)
+    shape, strides, total = touch(a)
+    assert shape == a.shape and strides == a.strides  # same layout, same data: the write reached ``a``
+    assert a[1, 2] == 16.0 and total == a[1].sum()
+    with pytest.raises(nb.core.errors.TypingError):
+        nb.njit(lambda x: borrow(x))(1.0)
+
+
 def test_plan_tiles_gives_every_tile_to_one_thread_longest_first():
     from dsg_gym.splat import _numba_incremental as I
 

@@ -60,6 +60,22 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
                            "--iterations", "40", "--max-gaussians", "4000", "--mip"]) == 0
         assert (wdir / f"{m}.dsgw").read_bytes() == data, m
         assert json.loads((wdir / f"{m}.json").read_text())["train_seconds"] == trained, m
+    # --refine-steps 0: ours without the refinement (the paper's method), recorded in the schedule and the rows
+    import shutil
+
+    out0 = tmp_path / "suite0"
+    shutil.copytree(out / "data", out0 / "data")  # same capture, nothing regenerated
+    assert suite_main(["--out", str(out0), "--scenes", "two_blocks", "--methods", "BCP", "--preset", "quick",
+                       "--iterations", "40", "--max-gaussians", "4000", "--mip", "--refine-steps", "0"]) == 0
+    t0 = json.loads((out0 / "table.json").read_text())
+    info0 = t0["scenes"]["two_blocks"]["BCP"]["train"]
+    assert t0["two_state_schedule"] == [40, 20, 0] and info0["refine_steps"] == 0
+    assert (out0 / "worlds" / "two_blocks" / "BCP.dsgw").read_bytes() != (wdir / "BCP.dsgw").read_bytes()
+    with pytest.raises(ValueError, match="refine_steps must be a non-negative integer"):
+        from train_world.suite import run_suite
+
+        run_suite(tmp_path / "bad", ["two_blocks"], ["BCP"], refine_steps=-1)
+    assert not (tmp_path / "bad").exists()  # refused before anything was written
 
 
 def _run(psnr: float, seconds: float) -> dict:
@@ -149,6 +165,7 @@ def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
     assert two_state_schedule("default", 2000)[0] == 2000
     d = two_state_schedule("default", None)
     assert d[0] > d[1] > 0 and d[2] == 4000
+    assert two_state_schedule("default", None, 0) == [d[0], d[1], 0]
 
 
 def test_merge_refuses_rows_that_held_out_different_views():

@@ -25,6 +25,7 @@ Examples::
     dsg-suite --out suite                                        # 7 scenes, default preset: hours
     dsg-suite --out /tmp/s --scenes two_blocks --iterations 2000 --methods a,b,BCP
     dsg-suite --out /tmp/s --scenes two_blocks --preset quick --width 32 --height 32 --views 16
+    dsg-suite --out /tmp/s --methods B,BC,BCP --refine-steps 0     # the ablations without refinement
     dsg-suite --out merged --merge run1/table.json run2/table.json   # one table from two partial runs
     dsg-suite --out merged --merge old/table.json new/table.json --methods a,b,BCP
 """
@@ -86,14 +87,15 @@ def _provenance() -> dict[str, Any]:
             "cpus": os.cpu_count()}
 
 
-def two_state_schedule(preset: str, iterations: int | None) -> list[int]:
-    """[steps, first joint step, refinement steps] of ``dsg-train``'s two-state run with this preset and
-    ``--iterations``."""
+def two_state_schedule(preset: str, iterations: int | None, refine_steps: int | None = None) -> list[int]:
+    """[steps, first joint step, refinement steps] of ``dsg-train``'s two-state run with this preset,
+    ``--iterations`` and ``--refine-steps`` (``None``: the preset's)."""
     from train_world.dual.cli import scaled_preset
     from train_world.dual.trainer import joint_start_step
 
     p = scaled_preset(preset, iterations, two_state=True)
-    return [p.iterations, joint_start_step(p.dual_joint_from, p.iterations), p.dual_refine_steps]
+    refine = p.dual_refine_steps if refine_steps is None else int(refine_steps)
+    return [p.iterations, joint_start_step(p.dual_joint_from, p.iterations), refine]
 
 
 _OURS = ("B", "BC", "BCP")
@@ -229,19 +231,26 @@ def run_suite(
     pseudo_every: int | None = None,
     max_gaussians: int | None = None,
     mip: bool | None = None,
+    refine_steps: int | None = None,
 ) -> dict[str, Any]:
-    """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``."""
+    """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``.
+    ``refine_steps``: refinement steps of ours (``dsg-train --refine-steps``; ``None``: the preset's, 0: the
+    paper's method without refinement)."""
     from train_world.data import load_capture
     from train_world.evaluate import evaluate_test_states
     from train_world.recon.presets import get_preset
 
+    if refine_steps is not None and (isinstance(refine_steps, bool) or int(refine_steps) != refine_steps
+                                     or refine_steps < 0):
+        raise ValueError(f"refine_steps must be a non-negative integer or None, got {refine_steps!r}")
     out = Path(out)
     py = sys.executable
     if max_gaussians is None:  # baseline (a) gets the two-state cap too: the same field size as each of ours
         max_gaussians = get_preset(preset).dual_max_gaussians
     results: dict[str, Any] = {"preset": preset, "iterations": iterations, "mip": mip,
                                "max_gaussians": max_gaussians, "synth_args": list(synth_args or []), "seed": seed,
-                               "pseudo_every": pseudo_every, "two_state_schedule": two_state_schedule(preset, iterations),
+                               "pseudo_every": pseudo_every,
+                               "two_state_schedule": two_state_schedule(preset, iterations, refine_steps),
                                "scenes": {}, "methods": methods, "provenance": _provenance()}
     for scene in scenes:
         cap = out / "data" / scene
@@ -276,7 +285,8 @@ def run_suite(
         single = [py, "-m", "train_world.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed),
                   "--resume", *it]
         dual = [py, "-m", "train_world.dual.cli", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
-                *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]), "--resume", *it]
+                *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]), "--resume", *it,
+                *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))])]
         recon_ckpt, recon_info = wdir / "recon.ckpt", wdir / "recon.json"
         runs: dict[str, Any] = {}
         for m in methods:
@@ -387,6 +397,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--pseudo-every", type=int, help="pseudo-state loss every n-th joint step (default: dsg-train's)")
     p.add_argument("--max-gaussians", type=int,
                    help="cap on each field's Gaussian count, baseline (a) too (default: the preset's two-state cap)")
+    p.add_argument("--refine-steps", type=int,
+                   help="refinement steps after ours' joint phase (default: the preset's; 0: none, the paper's method)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
                    help="train every world with (or without) the Mip-Splatting filters (default: the preset's)")
@@ -440,6 +452,7 @@ def main(argv: list[str] | None = None) -> int:
             pseudo_every=args.pseudo_every,
             max_gaussians=args.max_gaussians,
             mip=args.mip,
+            refine_steps=args.refine_steps,
         )
     except (RuntimeError, ValueError) as e:
         print(f"dsg-suite: error: {e}", file=sys.stderr)

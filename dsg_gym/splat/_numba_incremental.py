@@ -15,7 +15,8 @@ import numba as nb
 import numpy as np
 
 from ._numba_bins import depth_order
-from ._numba_raster import _FASTMATH, TILE, span_rows, splat_forward, splat_rows, store_tile, tile_state
+from ._numba_raster import (_FASTMATH, TILE, borrow, sigma_cutoff, span_rows, splat_forward, splat_rows, store_tile,
+                            tile_state)
 from ._numba_sh import sh_basis
 
 _TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS
@@ -61,9 +62,9 @@ def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, width
 
     Inputs as ``composite_merged``'s ``b`` set (means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors
     [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and indices), the image size and the
-    compositing constants. Writes rec [E, 8 + D] float32 (u, v, conic a, b, c, opacity, depth, 0, colour
-    channels), rec_rect [E, 4] int32 and rec_rows [E, 16] uint16 (the entry's row spans in its tile,
-    :func:`span_rows`) for the E list entries.
+    compositing constants. Writes rec [E, 8 + D] float32 (u, v, conic a, b, c, opacity, depth, sigma cut-off
+    (:func:`~dsg_gym.splat._numba_raster.sigma_cutoff`), colour channels), rec_rect [E, 4] int32 and
+    rec_rows [E, 16] uint16 (the entry's row spans in its tile, :func:`span_rows`) for the E list entries.
     """
     T = tiles_x * tiles_y
     D = col.shape[2]
@@ -80,7 +81,7 @@ def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, width
             rec[s, 4] = cn[c, g, 2]
             rec[s, 5] = op[co, g]
             rec[s, 6] = depth[c, g]
-            rec[s, 7] = 0.0
+            rec[s, 7] = sigma_cutoff(consts, rec[s, 5])
             for d in range(D):
                 rec[s, 8 + d] = col[c, g, d]
             for j in range(4):
@@ -112,7 +113,7 @@ def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b
         if j >= je or (i < ie and a_rec[i, 6] <= b_depth[c, b_gauss[j]]):
             f = a_rec[i]
             ndone += splat_rows(consts, f[0], f[1], f[2], f[3], f[4], f[5], a_rect[i, 2], a_rect[i, 3], a_rows[i],
-                                f[8:], py0, ph, xc, yc, acc, trans, row_done)
+                                f[8:], py0, ph, xc, yc, acc, trans, row_done, f[7])
             i += 1
         else:
             g = b_gauss[j]
@@ -193,7 +194,13 @@ def composite_merged(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_
 def composite_merged_serial(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect,
                             b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors,
                             bg_T, out_colors, out_T):
-    """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`)."""
+    """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`). The inputs
+    are borrowed (:func:`~dsg_gym.splat._numba_raster.borrow`), as the parallel kernel's loop sees them: the
+    per-Gaussian row views then cost no reference counting."""
+    a_rec, a_rect, a_rows, a_off = borrow(a_rec), borrow(a_rect), borrow(a_rows), borrow(a_off)
+    b_m2, b_cn, b_op, b_col, b_rect = borrow(b_m2), borrow(b_cn), borrow(b_op), borrow(b_col), borrow(b_rect)
+    b_depth, b_off, b_gauss, consts = borrow(b_depth), borrow(b_off), borrow(b_gauss), borrow(consts)
+    bg_colors, bg_T, out_colors, out_T = borrow(bg_colors), borrow(bg_T), borrow(out_colors), borrow(out_T)
     for m in range(starts[0], starts[-1]):
         _composite_tile(order[m], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
                         b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,

@@ -37,7 +37,7 @@ import math
 import numba as nb
 import numpy as np
 from llvmlite import ir
-from numba.core import types
+from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 TILE = 16
@@ -114,6 +114,27 @@ def _lowest_bit(typingctx, x):
         return builder.cttz(v, ir.Constant(ir.IntType(1), 1))
 
     return types.int64(x), codegen
+
+
+@intrinsic
+def borrow(typingctx, arr):
+    """The array ``arr`` without its owner (NRT meminfo and parent set to null): a view that costs no
+    reference counting when it is indexed into sub-arrays. Valid only while ``arr`` is alive, so use it only on a
+    kernel's arguments (the caller holds them). Inside a parallel kernel's loop numba passes arrays this way
+    already; a serial twin that borrows its inputs gets the same cheap views (``composite_merged_serial``: 1.5x
+    faster on ``DSGWorld-v0`` steps)."""
+    if not isinstance(arr, types.Array):
+        return None
+
+    def codegen(context, builder, signature, args):
+        src = context.make_array(signature.args[0])(context, builder, value=args[0])
+        out = context.make_array(signature.return_type)(context, builder)
+        cgutils.copy_struct(out, src)
+        out.meminfo = cgutils.get_null_value(out.meminfo.type)
+        out.parent = cgutils.get_null_value(out.parent.type)
+        return out._getvalue()
+
+    return arr(arr), codegen
 
 
 @nb.njit(cache=True, inline="always")
@@ -241,20 +262,27 @@ def span_rows(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, px
             rows[ly] = _bits(x0, x1)
 
 
+@nb.njit(cache=True, inline="always")
+def sigma_cutoff(consts, o):
+    """The sigma beyond which a Gaussian of opacity ``o`` has alpha < alpha_min for sure, in the working dtype
+    (the margin covers rounding): what :func:`splat_forward` computes, the same bits."""
+    return consts[5] + np.float32(math.log(np.float64(o) / np.float64(consts[1])) * 1.0001 + 1e-4)
+
+
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
 def splat_rows(consts, u, v, conic_a, conic_b, conic_c, o, ry0, ry1, rows, col, py0, ph, xc, yc, acc, trans,
-               row_done):
+               row_done, smax=np.nan):
     """:func:`splat_forward` with the row spans given (``rows`` from :func:`span_rows`): visits the same
     pixels in the same order with the same arithmetic, so the result is the same bit for bit; returns how
-    many pixels it finished."""
-    amin = consts[1]
+    many pixels it finished. ``smax``: the Gaussian's :func:`sigma_cutoff` when the caller has it (NaN:
+    computed here, on the first row with work)."""
     half = consts[3]
     zero = consts[5]
     y0 = max(ry0, py0) - py0
     y1 = min(ry1, py0 + ph - 1) - py0
     finished = 0
     ready = False
-    ca = cc_ = smax = zero
+    ca = cc_ = zero
     for ly in range(y0, y1 + 1):
         todo = np.int64(rows[ly]) & ~row_done[ly]
         if todo == 0:
@@ -263,7 +291,8 @@ def splat_rows(consts, u, v, conic_a, conic_b, conic_c, o, ry0, ry1, rows, col, 
             ready = True
             ca = conic_a * half
             cc_ = conic_c * half
-            smax = zero + np.float32(math.log(np.float64(o) / np.float64(amin)) * 1.0001 + 1e-4)
+            if smax != smax:
+                smax = sigma_cutoff(consts, o)
         dy = yc[ly] - v
         finished += _blend_row(consts, todo, ly, dy, u, ca, conic_b, cc_, o, smax, col, xc, acc, trans, row_done)
     return finished

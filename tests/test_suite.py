@@ -71,6 +71,14 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
     info0 = t0["scenes"]["two_blocks"]["BCP"]["train"]
     assert t0["two_state_schedule"] == [40, 20, 0] and info0["refine_steps"] == 0
     assert (out0 / "worlds" / "two_blocks" / "BCP.dsgw").read_bytes() != (wdir / "BCP.dsgw").read_bytes()
+    # a rerun into the same folder with the preset's refinement would reuse that unrefined world: refused, with
+    # both schedules named, before anything was written
+    table_before = (out0 / "table.json").read_bytes()
+    with pytest.raises(ValueError, match=r"two_blocks/BCP: .*schedule \[40, 20, 0\].*asks for \[40, 20, 40\]"):
+        from train_world.suite import run_suite
+
+        run_suite(out0, ["two_blocks"], ["BCP"], preset="quick", iterations=40)
+    assert (out0 / "table.json").read_bytes() == table_before
     with pytest.raises(ValueError, match="refine_steps must be a non-negative integer"):
         from train_world.suite import run_suite
 
@@ -183,3 +191,22 @@ def test_merge_refuses_rows_that_held_out_different_views():
         merge_tables([old, new])  # five_small's (a) would stay the old run's
     m = merge_tables([old, new], ["BCP"])
     assert m["holdout_every"] == 0 and m["scenes"] == {"two_blocks": {"BCP": new_rows["BCP"]}}
+
+
+@pytest.mark.parametrize("files", [
+    ("suite-1.3-session16.json", "suite-1.3-session18a.json"),  # with refinement (README: "Ablations over ...")
+    ("suite-1.3-session15.json", "suite-1.3-session15c.json", "suite-1.3-session18b.json"),  # without
+])
+def test_committed_ablation_tables_merge_as_the_readme_says(files):
+    """The README's commands that rebuild the seven-scene ablation tables from ``benchmarks/results/`` work: the
+    files merge (same settings and schedules), cover every scene with B, B+C and B+C+P, and the mean over the
+    seven holds the order the README reports."""
+    from pathlib import Path
+
+    from train_world.suite import merge_tables
+
+    root = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
+    m = merge_tables([json.loads((root / f).read_text()) for f in files], ["B", "BC", "BCP"])
+    assert len(m["scenes"]) == 7 and all(set(r) == {"B", "BC", "BCP"} for r in m["scenes"].values())
+    psnr = {k: np.mean([r[k]["mean"]["psnr"] for r in m["scenes"].values()]) for k in ("B", "BC", "BCP")}
+    assert psnr["B"] < psnr["BC"] < psnr["BCP"], psnr

@@ -5,7 +5,8 @@ on ``state1``, segmentation only), derive (b) (a + kNN background completion) an
 ablations B, B+C and B+C+P (``dsg-train`` on both states); each training runs in its own process (wall time
 and peak RSS recorded) and is skipped when its world file exists; a training that was killed continues from its
 checkpoint (``WORLD.ckpt``; its ``train_seconds`` count every part, its ``wall_seconds`` the last), so an
-interrupted suite resumes. Every
+interrupted suite resumes. A world of ours found there that was trained with another two-state schedule (say,
+another ``--refine-steps``) is refused before anything runs, not reused. Every
 world is evaluated with ``dsg-eval`` on every test state of the capture (objects at the test poses, held-out
 cameras); a method's figure per scene is the mean over its test states.
 
@@ -219,6 +220,25 @@ def _grid_png(
     atomic_write_bytes(out_png, encode_png(_grid(grid)))
 
 
+def _refuse_reused_worlds_of_another_schedule(out: Path, scenes: list[str], methods: list[str],
+                                              table: dict[str, Any]) -> None:
+    """Before anything runs: raises ``ValueError`` when a world of ours that this run would reuse (its file and
+    training record in ``OUT/worlds/<scene>/``) was trained with another two-state schedule than the run's
+    (steps, first joint step, refinement steps), which would silently mix rows of two methods in one table."""
+    want = tuple(table["two_state_schedule"])
+    for scene in scenes:
+        for m in methods:
+            info_path = out / "worlds" / scene / f"{m}.json"
+            if m not in _OURS or not (out / "worlds" / scene / f"{m}.dsgw").is_file() or not info_path.is_file():
+                continue
+            have = _row_schedule({"train": json.loads(info_path.read_text())}, table)
+            if have and have != want:
+                raise ValueError(
+                    f"{scene}/{m}: the world in {info_path.parent} was trained with the two-state schedule "
+                    f"{list(have)} (steps, first joint step, refinement steps), this run asks for {list(want)}; "
+                    "use another --out, or the matching --iterations / --refine-steps")
+
+
 def run_suite(
     out: str | Path,
     scenes: list[str],
@@ -252,6 +272,7 @@ def run_suite(
                                "pseudo_every": pseudo_every,
                                "two_state_schedule": two_state_schedule(preset, iterations, refine_steps),
                                "scenes": {}, "methods": methods, "provenance": _provenance()}
+    _refuse_reused_worlds_of_another_schedule(out, scenes, methods, results)
     for scene in scenes:
         cap = out / "data" / scene
         logs = out / "logs" / scene

@@ -76,6 +76,19 @@ def _dot(a, b, n):
 
 
 @nb.njit(cache=True, inline="always")
+def log_opacity_ratio(consts, o):
+    """log(o / alpha_min) in float64: the Gaussian's reach, shared by the row spans and the sigma cut-off."""
+    return math.log(np.float64(o) / np.float64(consts[1]))
+
+
+@nb.njit(cache=True, inline="always")
+def sigma_cutoff_from_log(consts, logo):
+    """Beyond this sigma, alpha < alpha_min for sure, so the exp is skipped; in the working dtype (no conversion
+    per pixel), with a margin that covers rounding. ``logo``: :func:`log_opacity_ratio`."""
+    return consts[5] + np.float32(logo * 1.0001 + 1e-4)
+
+
+@nb.njit(cache=True, inline="always")
 def _row_span(ca, cb, cc, u, dy, logo, x0, x1, px0):
     """Tile-local x range of a row's pixels where alpha can reach 1/255 (1 px margin).
 
@@ -211,14 +224,11 @@ def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1
     ly set: that pixel has finished). A row's unfinished pixels in the span are visited in increasing x
     (:func:`_blend_row`).
     """
-    amin = consts[1]
     half = consts[3]
-    zero = consts[5]
     ca = conic_a * half
     cc_ = conic_c * half
-    logo = math.log(np.float64(o) / np.float64(amin))
-    # Beyond this sigma, alpha < alpha_min for sure: skip the exp (the margin covers rounding).
-    smax = zero + np.float32(logo * 1.0001 + 1e-4)  # in the working dtype: no conversion per pixel
+    logo = log_opacity_ratio(consts, o)
+    smax = sigma_cutoff_from_log(consts, logo)
     y0 = max(ry0, py0) - py0
     y1 = min(ry1, py0 + ph - 1) - py0
     xr0 = max(rx0, px0)
@@ -254,7 +264,7 @@ def span_rows(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, px
     xr1 = min(rx1, px0 + pw - 1)
     if xr1 < xr0:
         return
-    logo = math.log(np.float64(o) / np.float64(consts[1]))
+    logo = log_opacity_ratio(consts, o)
     for ly in range(y0, y1 + 1):
         dy = yc[ly] - v
         x0, x1 = _row_span(conic_a, conic_b, conic_c, u, np.float64(dy), logo, xr0, xr1, px0)
@@ -264,9 +274,9 @@ def span_rows(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, px
 
 @nb.njit(cache=True, inline="always")
 def sigma_cutoff(consts, o):
-    """The sigma beyond which a Gaussian of opacity ``o`` has alpha < alpha_min for sure, in the working dtype
-    (the margin covers rounding): what :func:`splat_forward` computes, the same bits."""
-    return consts[5] + np.float32(math.log(np.float64(o) / np.float64(consts[1])) * 1.0001 + 1e-4)
+    """The sigma beyond which a Gaussian of opacity ``o`` has alpha < alpha_min for sure, in the working dtype:
+    what :func:`splat_forward` computes, the same bits."""
+    return sigma_cutoff_from_log(consts, log_opacity_ratio(consts, o))
 
 
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
@@ -408,9 +418,7 @@ def composite_backward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y,
     C = out_T.shape[0]
     T = tiles_x * tiles_y
     amax = consts[0]
-    amin = consts[1]
     half = consts[3]
-    zero = consts[5]
     for m in nb.prange(C * T):
         ct = tile_order[m]
         if tile_offsets[ct] == tile_offsets[ct + 1]:
@@ -460,9 +468,8 @@ def composite_backward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y,
             cb64 = np.float64(cb)
             cc64 = np.float64(pair_f[s, 4])
             o = pair_f[s, 5]
-            logo = math.log(np.float64(o) / np.float64(amin))
-            # Beyond this sigma, alpha < alpha_min for sure: skip the exp (the margin covers rounding).
-            smax = zero + np.float32(logo * 1.0001 + 1e-4)
+            logo = log_opacity_ratio(consts, o)
+            smax = sigma_cutoff_from_log(consts, logo)
             y0 = max(pair_r[s, 2], py0) - py0
             y1 = min(pair_r[s, 3], py0 + ph - 1) - py0
             xr0 = max(pair_r[s, 0], px0)

@@ -139,7 +139,7 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
     """One table from several suite runs' ``table.json`` dictionaries (in order: a later run's (scene, method)
     replaces an earlier one's), keeping ``methods`` (None: all). Raises ``ValueError`` naming the setting when
     the runs' settings differ, when the rows kept for ours (B, B+C, B+C+P) were trained with different
-    two-state schedules (steps, first joint step), or when the rows kept held out different views
+    two-state schedules (steps, first joint step, refinement steps), or when the rows kept held out different views
     (``holdout_every`` of their training records; tables before session 15: 8)."""
     if not tables:
         raise ValueError("merge needs at least one table.json")

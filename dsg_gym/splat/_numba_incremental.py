@@ -15,8 +15,9 @@ import numba as nb
 import numpy as np
 
 from ._numba_bins import depth_order
-from ._numba_raster import (_FASTMATH, TILE, borrow, reset_tile, sigma_cutoff, span_rows, splat_forward, splat_rows,
-                            store_tile, tile_state)
+from ._numba_intrinsics import borrow
+from ._numba_raster import (_FASTMATH, TILE, reset_tile, sigma_cutoff, span_rows, splat_forward, splat_rows, store_tile,
+                            tile_state)
 from ._numba_sh import sh_basis
 
 _TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS
@@ -135,7 +136,7 @@ def _composite_tiles(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_co
                      trans, row_done, xc, yc, b_rows, cover):
     """Recomposite ``tiles`` one after the other in the scratch arrays acc [256, D], trans [256], row_done,
     xc, yc, cover [16] and b_rows [>= longest object list with the cache, 16]. Every argument is borrowed
-    (:func:`~dsg_gym.splat._numba_raster.borrow`; the caller holds them): the per-Gaussian and per-row views
+    (:func:`~dsg_gym.splat._numba_intrinsics.borrow`; the caller holds them): the per-Gaussian and per-row views
     then cost no reference counting. Per-tile allocations with their counted views made the single-threaded
     kernel 2x slower than the threaded one run on one thread."""
     tiles, a_rec, a_rect, a_rows, a_off = borrow(tiles), borrow(a_rec), borrow(a_rect), borrow(a_rows), borrow(a_off)

@@ -88,7 +88,7 @@ class MujocoRun:
     def __init__(self, size: int, seed: int = 0):
         import mujoco
 
-        from train_world.geom_world import capture_cameras
+        from train_world.synth.geom_world import capture_cameras
         from train_world.synth import resolve_scene
         from train_world.synth.build import build_scene
         from train_world.synth.generate import rng_for

@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(r)
                 print(f"{scene:18s} {lighting:5s} {r['cameras']:13s} objects {r['object_psnr']:6.2f} dB  "
                       f"image {r['image_psnr']:6.2f} dB", file=sys.stderr)
-    from train_world.data.format import atomic_write_json
+    from train_world.capture.format import atomic_write_json
 
     atomic_write_json(args.out, {"benchmark": "lighting_ceiling", "rows": rows})
     return 0

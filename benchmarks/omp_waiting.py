@@ -76,7 +76,7 @@ def run(out: Path, bench_args: list[str], rounds: int, settings: tuple[str, ...]
         "summary": summary,
         "auto_over_passive": {s: round(v["auto"] / v["passive"], 3) for s, v in summary.items()},
     }
-    from train_world.data.format import atomic_write_json  # (loads torch: not before the measurements)
+    from train_world.capture.format import atomic_write_json  # (loads torch: not before the measurements)
 
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out, result)

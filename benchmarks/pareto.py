@@ -8,7 +8,7 @@ rendered by MuJoCo):
 * SH degree cap 0..3, early termination (``t_min``) and alpha threshold (``alpha_min``) of the renderer
   (``dsg_gym.scene_renderer.RenderSettings``),
 * Gaussian budget: keep 70 / 50 / 30 % of each part's Gaussians by removal error
-  (``train_world.importance``, as ``dsg-compact`` scores them) without refit (``--extra-world`` adds
+  (``train_world.compact.importance``, as ``dsg-compact`` scores them) without refit (``--extra-world`` adds
   whole world files, e.g. the bundled world before ``dsg-compact``),
 * float16 storage of colours and opacities (emulated: rounded to float16 and back; ``float16_all`` rounds
   every attribute), which changes the error only, not the float32 renderer's speed.
@@ -21,7 +21,7 @@ marked) and the recommended renderer settings (``recommended`` in the JSON; rule
 The bundled world's ground truth is ``two_blocks`` regenerated with the lighting and supersampling it was
 trained under (``world_generator_settings``: bit for bit the images it was trained on; the generator's own
 test cameras). The seven scenes have no trained worlds (about 30 min of
-training each), so their geometry worlds (``train_world.geom_world``, baked under the generator's default
+training each), so their geometry worlds (``train_world.synth.geom_world``, baked under the generator's default
 lighting) stand in (``--scenes none`` skips them). ``--training`` adds novel-state PSNR
 against training wall-clock for the three ``dsg-train`` presets (``benchmarks.pareto_training``, heavy:
 ``3 x --train-minutes``) and ``DIR/training.png``. ``--quick``: bundled world, a few points, a few steps
@@ -250,7 +250,7 @@ def run_bundled(args, work: Path) -> tuple[dict, dict | None, list[C.Point]]:
 
 
 def run_scenes(args, work: Path, points: list[C.Point], rec: dict | None) -> dict:
-    from train_world.geom_world import build_geom_world
+    from train_world.synth.geom_world import build_geom_world
     from train_world.synth.spec import default_scene_names
 
     names = default_scene_names() if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
@@ -297,7 +297,7 @@ def run_scenes(args, work: Path, points: list[C.Point], rec: dict | None) -> dic
         mean_rows.append(m)
     mark_fronts(mean_rows, args.size)
     return {
-        "kind": "geometry worlds (train_world.geom_world) standing in for trained worlds",
+        "kind": "geometry worlds (train_world.synth.geom_world) standing in for trained worlds",
         "note": ("No trained worlds exist for these scenes (training takes about 30 min each): each scene's "
                  "geometry world (Gaussians laid on the MuJoCo geoms, colours baked from MuJoCo renders under "
                  "the generator's default lighting, SH degree 0, so the SH axis is skipped) is measured against "
@@ -346,7 +346,7 @@ NOTES = [
      "area-averaged down to the render size (PIL box filter; masks: the class covering most of each pixel). "
      "PSNR and SSIM are dsg-eval's (mean over views); mask IoU uses the env's mask (argmax of the object label "
      "weights, not dsg-eval's classifier), accumulated over a state's views, mean over objects and states."),
-    ("Budget: removal-error importance (train_world.importance: background alone from its capture cameras plus "
+    ("Budget: removal-error importance (train_world.compact.importance: background alone from its capture cameras plus "
      "an orbit, objects alone from a sphere of cameras) keeps the top fraction of each part at once, without "
      "dsg-compact's rounds and refit; object hull vertices are kept. The bundled world is already a dsg-compact "
      "output (pruned with refit within 0.3 dB), so pruning it further without refit costs much more."),
@@ -378,7 +378,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from train_world.data.format import atomic_write_bytes, atomic_write_json
+    from train_world.capture.format import atomic_write_bytes, atomic_write_json
 
     args.size = C.DEFAULT_SIZE
     args.steps = args.steps or (30 if args.quick else 200)

@@ -157,10 +157,10 @@ def keep_top(scores: np.ndarray, fraction: float, protected: np.ndarray | None =
 
 def importance_scores(world: WorldModel, object_views: int = 32, rings: int = 2, per_ring: int = 12,
                       size: int | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Removal error per Gaussian (mean over views, :func:`train_world.importance.gaussian_importance`): the
-    background alone from its capture cameras plus an orbit (:func:`~train_world.importance.scene_cameras`),
+    """Removal error per Gaussian (mean over views, :func:`train_world.compact.importance.gaussian_importance`): the
+    background alone from its capture cameras plus an orbit (:func:`~train_world.compact.importance.scene_cameras`),
     each object alone from ``object_views`` cameras on a sphere, as ``dsg-compact`` scores them."""
-    from train_world.importance import gaussian_importance, scene_cameras, sphere_cameras
+    from train_world.compact.importance import gaussian_importance, scene_cameras, sphere_cameras
 
     cams = world.cameras if size is None else world.cameras.resized(size, size)
     bgc = tuple(float(c) for c in world.metadata.get("background", (0.0, 0.0, 0.0)))
@@ -180,7 +180,7 @@ def importance_scores(world: WorldModel, object_views: int = 32, rings: int = 2,
 def pruned_world(world: WorldModel, scores: tuple[np.ndarray, list[np.ndarray]], fraction: float) -> WorldModel:
     """``world`` keeping the ``fraction`` of each part's Gaussians with the largest removal error, no refit;
     object collision-hull vertices are always kept (the physics proxy builds the same hulls)."""
-    from train_world.compact import hull_vertices
+    from train_world.compact.compaction import hull_vertices
 
     if fraction >= 1.0:
         return world
@@ -219,8 +219,8 @@ class TestStates:
 
 def load_test_states(capture: str | Path, object_ids: tuple[int, ...], max_views: int | None = None) -> TestStates:
     """The ``test`` states of a ``dsg-synth`` capture (all of them; ``max_views``: the first views only)."""
-    from train_world.data import load_capture
-    from train_world.recon.data import class_map
+    from train_world.capture import load_capture
+    from train_world.single_state.data import class_map
 
     head = load_capture(capture, states=[], load_depth=False)
     names = sorted(s for s, split in head.splits.items() if split == "test")
@@ -264,9 +264,9 @@ def downsample_classes(cls: np.ndarray, num_classes: int, width: int, height: in
 def render_error(world: WorldModel, test: TestStates, point: Point) -> dict:
     """PSNR / SSIM / mask IoU of the env's renderer (:class:`SceneRenderer`, the point's settings, full
     render) at the test states' poses and cameras against the ground truth (area-downsampled to the point's
-    size). PSNR and SSIM are ``dsg-eval``'s (:mod:`train_world.evaluate`), averaged over all views; mask
+    size). PSNR and SSIM are ``dsg-eval``'s (:mod:`train_world.eval.evaluate`), averaged over all views; mask
     IoU per object accumulated over a state's views, averaged over objects, then over states."""
-    from train_world.evaluate import _psnr, _ssim, mask_iou
+    from train_world.eval.evaluate import _psnr, _ssim, mask_iou
 
     s = point.size
     Ks = test.Ks.copy()

@@ -47,9 +47,9 @@ def training_curve(capture: str | Path, preset: str, minutes: float, *, downscal
     """Train ``preset`` on ``capture`` for at most ``minutes`` of training time; returns the curve
     ``{"preset", "iterations", "points": [{"step", "train_seconds", "psnr", "ssim", "mask_iou", ...}]}``."""
     from dsg_gym.world_model import WorldModel
-    from train_world.dual.cli import scaled_preset
-    from train_world.dual.trainer import DualConfig, DualTrainer
-    from train_world.recon.presets import TrainConfig
+    from train_world.dual_state.cli import scaled_preset
+    from train_world.dual_state.trainer import DualConfig, DualTrainer
+    from train_world.single_state.presets import TrainConfig
 
     from .pareto_core import Point, load_test_states, render_error
 
@@ -104,9 +104,9 @@ def training_curve(capture: str | Path, preset: str, minutes: float, *, downscal
 def warm_up(capture: str | Path, downscale: int, seed: int = 0) -> float:
     """A throwaway 3-step run, so that numba's compilation (or cache loading) of the training kernels is not
     counted in the first preset's clock. Returns its seconds."""
-    from train_world.dual.cli import scaled_preset
-    from train_world.dual.trainer import DualConfig, DualTrainer
-    from train_world.recon.presets import TrainConfig
+    from train_world.dual_state.cli import scaled_preset
+    from train_world.dual_state.trainer import DualConfig, DualTrainer
+    from train_world.single_state.presets import TrainConfig
 
     t0 = time.perf_counter()
     cfg = DualConfig(base=TrainConfig(preset=scaled_preset("quick", 6), seed=seed, downscale=downscale))
@@ -133,7 +133,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from train_world.data.format import atomic_write_json
+    from train_world.capture.format import atomic_write_json
 
     presets = [s for s in args.presets.split(",") if s]
     bad = [s for s in presets if s not in PRESET_NAMES]

@@ -363,10 +363,10 @@ def render_extremes(seeds: int, progress: bool) -> dict:
 def training_faults(steps: int, faults: int, progress: bool) -> dict:
     from _captures import tiny_capture
 
-    from train_world.recon.checkpoint import CheckpointError, load_checkpoint
-    from train_world.recon.data import load_training_data
-    from train_world.recon.presets import TrainConfig, get_preset
-    from train_world.recon.trainer import Trainer, TrainingDiverged
+    from train_world.single_state.checkpoint import CheckpointError, load_checkpoint
+    from train_world.single_state.data import load_training_data
+    from train_world.single_state.presets import TrainConfig, get_preset
+    from train_world.single_state.trainer import Trainer, TrainingDiverged
     from train_world.world_writer import encode_world
 
     every = max(2, steps // 6)

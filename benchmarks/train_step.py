@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import train_world  # (OpenMP waiting and numba's threading layer, before torch loads)
-from train_world.data.format import atomic_write_json
+from train_world.capture.format import atomic_write_json
 
 
 def _time_steps(trainer, n: int, warmup: int) -> list[float]:
@@ -84,9 +84,9 @@ def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | No
     import numba
     import torch
 
-    from train_world.dual.cli import _parser as dual_parser
-    from train_world.dual.cli import config_from_args
-    from train_world.dual.trainer import DualTrainer
+    from train_world.dual_state.cli import _parser as dual_parser
+    from train_world.dual_state.cli import config_from_args
+    from train_world.dual_state.trainer import DualTrainer
     from train_world.synth.cli import main as synth_main
 
     given = capture

@@ -1,4 +1,4 @@
-"""``dsg-compact`` (train_world.compact): scores, SH cut, pruning, budget, refit, CLI, runtime features."""
+"""``dsg-compact`` (train_world.compact.compaction): scores, SH cut, pruning, budget, refit, CLI, runtime features."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from dsg_gym.gaussians import GaussianSet
 from dsg_gym.splat import rasterize
 from dsg_gym.world import load_world
 from dsg_gym.world_model import Cameras, TableBounds, WorldModel
-from train_world.compact import (
+from train_world.compact.compaction import (
     CompactConfig,
     compact_world,
     hull_vertices,
@@ -23,9 +23,9 @@ from train_world.compact import (
     sh_change_bound,
     truncate_sh,
 )
-from train_world.compact_checks import SelfCheck
-from train_world.import_ply import world_from_model
-from train_world.importance import gaussian_importance, look_at, scene_cameras, view_colors
+from train_world.compact.checks import SelfCheck
+from train_world.capture.ply_import import world_from_model
+from train_world.compact.importance import gaussian_importance, look_at, scene_cameras, view_colors
 from train_world.world_writer import encode_world, write_world
 
 # small and quick: few plausible cameras, tiny images
@@ -285,7 +285,7 @@ def test_budget_is_respected_and_hull_and_table_are_unchanged(tmp_path):
     assert rep["gaussians_after"] < 0.8 * rep["gaussians_before"]  # redundant ones went too
     assert [r["kept"] for r in rep["rounds"]] == sorted((r["kept"] for r in rep["rounds"]), reverse=True)
     # an independent check of the result with the same cameras
-    from train_world.compact import _capture_cameras
+    from train_world.compact.compaction import _capture_cameras
 
     vm, Ks, W, H = _capture_cameras(w)
     chk = SelfCheck(w, scene_cameras(vm, Ks, W, H, rings=2, per_ring=6), (0, 0, 0), cfg, 25.0)

@@ -1,4 +1,4 @@
-"""train_world.data: loading captures (ours and NeRF-Blender), camera conventions, errors naming the file."""
+"""train_world.capture: loading captures (ours and NeRF-Blender), camera conventions, errors naming the file."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from train_world.data import CaptureError, load_blender, load_capture, load_views  # noqa: E402
-from train_world.data.cameras import (  # noqa: E402
+from train_world.capture import CaptureError, load_blender, load_capture, load_views  # noqa: E402
+from train_world.capture.cameras import (  # noqa: E402
     check_rigid,
     opengl_c2w_to_viewmat,
     viewmat_to_opengl_c2w,

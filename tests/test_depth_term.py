@@ -8,13 +8,13 @@ import pytest
 from _captures import tiny_capture
 import torch
 
-from train_world.dual.cli import _parser as dual_parser
-from train_world.dual.cli import config_from_args
-from train_world.recon.data import load_training_data
-from train_world.recon.field import SegmentedField
-from train_world.recon.losses import depth_loss
-from train_world.recon.presets import TrainConfig, get_preset
-from train_world.recon.trainer import Trainer
+from train_world.dual_state.cli import _parser as dual_parser
+from train_world.dual_state.cli import config_from_args
+from train_world.single_state.data import load_training_data
+from train_world.single_state.field import SegmentedField
+from train_world.single_state.losses import depth_loss
+from train_world.single_state.presets import TrainConfig, get_preset
+from train_world.single_state.trainer import Trainer
 
 
 @pytest.fixture(scope="module")

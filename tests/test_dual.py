@@ -12,15 +12,15 @@ from _captures import tiny_capture
 import torch
 
 from dsg_gym.world import load_world
-from train_world.baselines import knn_complete, train_single_state
-from train_world.dual.losses import align_loss, pseudo_loss
-from train_world.dual.merge import co_paste_background, co_prune_masks, object_footprints_xy
-from train_world.dual.pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
-from train_world.dual.transfer import ObjectTransfer, gaussian_transforms, relative_transforms
-from train_world.evaluate import evaluate
-from train_world.evaluate import main as ev_main
-from train_world.recon import cli as recon_cli
-from train_world.recon.field import Classifier, SegmentedField
+from train_world.suite.baselines import knn_complete, train_single_state
+from train_world.dual_state.losses import align_loss, pseudo_loss
+from train_world.dual_state.merge import co_paste_background, co_prune_masks, object_footprints_xy
+from train_world.dual_state.pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
+from train_world.dual_state.transfer import ObjectTransfer, gaussian_transforms, relative_transforms
+from train_world.eval.evaluate import evaluate
+from train_world.eval.evaluate import main as ev_main
+from train_world.single_state import cli as recon_cli
+from train_world.single_state.field import Classifier, SegmentedField
 
 
 def _pose(x, y, z=0.05, yaw=0.0):
@@ -51,7 +51,7 @@ def test_object_transfer_moves_objects_and_keeps_background():
     with pytest.raises(ValueError):
         gaussian_transforms(torch.tensor([3]), T)
     # the object-rows-only callable agrees with the per-Gaussian matrices; background rows are untouched bits
-    from train_world.recon.field import rigid_transform_gaussians
+    from train_world.single_state.field import rigid_transform_gaussians
 
     tr = ObjectTransfer(labels, T)
     m2, q2 = tr(means, quats)
@@ -327,7 +327,7 @@ def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
 
 
 def _dual_cli(tiny, out, *extra):
-    from train_world.dual import cli as dual_cli
+    from train_world.dual_state import cli as dual_cli
 
     args = [str(tiny), "--out", str(out), "--preset", "quick", "--iterations", "60", "--prune-every", "10",
             "--quiet", *extra]
@@ -343,8 +343,8 @@ def _same_world(a, b):
 
 
 def test_dual_resume_and_branch_reproduce_uninterrupted_runs(tiny, tmp_path):
-    from train_world.dual import cli as dual_cli
-    from train_world.dual.trainer import DualTrainer
+    from train_world.dual_state import cli as dual_cli
+    from train_world.dual_state.trainer import DualTrainer
 
     full = _dual_cli(tiny, tmp_path / "full.dsgw")
     # killed at step 45 (past the joint start 30, checkpoint every 10 at this length), then --resume
@@ -374,9 +374,9 @@ def test_dual_resume_and_branch_reproduce_uninterrupted_runs(tiny, tmp_path):
 
 
 def test_dual_non_finite_gradient_stops_before_the_fields_change(tiny, tmp_path):
-    from train_world.dual import cli as dual_cli
-    from train_world.dual.trainer import DualTrainer
-    from train_world.recon.trainer import TrainingDiverged
+    from train_world.dual_state import cli as dual_cli
+    from train_world.dual_state.trainer import DualTrainer
+    from train_world.single_state.trainer import TrainingDiverged
 
     cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(
         [str(tiny), "--out", "x", "--preset", "quick", "--iterations", "40"]))
@@ -394,8 +394,8 @@ def test_dual_non_finite_gradient_stops_before_the_fields_change(tiny, tmp_path)
 def test_two_state_training_has_its_own_step_count_and_field_cap():
     import dataclasses
 
-    from train_world.dual import cli as dual_cli
-    from train_world.recon.presets import get_preset
+    from train_world.dual_state import cli as dual_cli
+    from train_world.single_state.presets import get_preset
 
     p = get_preset("default")
     assert p.dual_iterations is not None and p.dual_iterations < p.iterations
@@ -467,7 +467,7 @@ def test_knn_completion_fills_the_hole_not_the_table_seen_around_the_object():
 
 
 def test_two_state_training_holds_out_views_only_when_the_capture_has_no_test_states(tiny, tmp_path):
-    from train_world.dual.cli import _parser, config_from_args, default_holdout_every
+    from train_world.dual_state.cli import _parser, config_from_args, default_holdout_every
 
     bare = tiny_capture(tmp_path, views=8, test_views=0, test_states=0)
     assert default_holdout_every(tiny) == 0 and default_holdout_every(bare) == 8

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from train_world import evaluate as ev
-from train_world.recon import cli
+from train_world.eval import evaluate as ev
+from train_world.single_state import cli
 from train_world.synth.cli import main as synth_main
 
 LEGO = Path(__file__).resolve().parents[2] / "shared" / "external" / "nerf_synthetic_lego"
@@ -86,7 +86,7 @@ def test_report_of_heldout_views(trained):
 def test_novel_state_uses_its_object_poses(trained):
     cap, world, root = trained
     from dsg_gym.world import load_world
-    from train_world.data import load_capture
+    from train_world.capture import load_capture
 
     r_same = ev.evaluate(world, cap, root / "s1", state="state1")  # the training state: held-out views
     r_test = ev.evaluate(world, cap, root / "t0", state="test_0")  # a test state: all its views

@@ -8,7 +8,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from dsg_gym.splat import rasterize  # noqa: E402
 from dsg_gym.world_model import WorldModel  # noqa: E402
-from train_world import geom_world as gw  # noqa: E402
+from train_world.synth import geom_world as gw  # noqa: E402
 from train_world.synth import resolve_scene  # noqa: E402
 
 PSNR_FLOOR_DB = 19.0  # measured 21.0-21.1 dB on two_blocks (default config), 4 test-orbit views

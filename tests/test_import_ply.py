@@ -1,4 +1,4 @@
-"""dsg-import-ply / train_world.import_ply: a 3DGS PLY as a world's background or as a new object."""
+"""dsg-import-ply / train_world.capture.ply_import: a 3DGS PLY as a world's background or as a new object."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from dsg_gym.io import PlyFormatError, read_ply, write_ply
 from dsg_gym.scene_renderer import SceneRenderer
 from dsg_gym.world import load_world
 from dsg_gym.world_model import WorldModel
-from train_world.import_ply import main, world_from_ply
+from train_world.capture.ply_import import main, world_from_ply
 from train_world.world_writer import write_world
 
 EXTERNAL = Path(__file__).resolve().parents[2] / "shared" / "external"

@@ -14,9 +14,9 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from train_world import importers  # noqa: E402
-from train_world.data import CaptureError, load_capture  # noqa: E402
-from train_world.importers import import_llff, import_transforms, llff_to_opengl_c2w  # noqa: E402
+from train_world.capture import importers  # noqa: E402
+from train_world.capture import CaptureError, load_capture  # noqa: E402
+from train_world.capture.importers import import_llff, import_transforms, llff_to_opengl_c2w  # noqa: E402
 from train_world.synth.generate import GenerateConfig, generate_scene  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "external"

@@ -11,13 +11,13 @@ import torch
 
 from dsg_gym.world import load_world
 from dsg_gym.world_model import WorldModel
-from train_world.evaluate import render_gaussians
-from train_world.recon import cli
-from train_world.recon.checkpoint import load_checkpoint
-from train_world.recon.data import load_training_data
-from train_world.recon.field import SegmentedField, filter3d_variance
-from train_world.recon.presets import MIP_FILTER3D_SCALE, TrainConfig, get_preset, mip_overrides
-from train_world.recon.trainer import Trainer
+from train_world.eval.evaluate import render_gaussians
+from train_world.single_state import cli
+from train_world.single_state.checkpoint import load_checkpoint
+from train_world.single_state.data import load_training_data
+from train_world.single_state.field import SegmentedField, filter3d_variance
+from train_world.single_state.presets import MIP_FILTER3D_SCALE, TrainConfig, get_preset, mip_overrides
+from train_world.single_state.trainer import Trainer
 from train_world.world_writer import encode_world
 
 

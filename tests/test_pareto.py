@@ -145,7 +145,7 @@ def test_budget_pruning_keeps_the_most_important_gaussians():
     keep = C.keep_top(scores[0], 0.5)
     assert half.background.num == keep.sum() == int(np.ceil(0.5 * n))
     assert scores[0][keep].min() >= scores[0][~keep].max()
-    from train_world.compact import hull_vertices
+    from train_world.compact.compaction import hull_vertices
 
     for o, po in zip(w.objects, half.objects):
         hv = o.means[hull_vertices(o)]

@@ -11,14 +11,14 @@ from _captures import tiny_capture
 import torch
 
 from dsg_gym.world import load_world
-from train_world.recon import cli
-from train_world.recon.checkpoint import load_checkpoint
-from train_world.recon.data import load_training_data
-from train_world.recon.field import SegmentedField
-from train_world.recon.losses import identity_loss, neighbour_kl_loss, photometric_loss, ssim
-from train_world.recon.presets import TrainConfig, get_preset
-from train_world.recon.strategy import DensifyStrategy, StrategyConfig
-from train_world.recon.trainer import Trainer, TrainingDiverged, make_optimizers
+from train_world.single_state import cli
+from train_world.single_state.checkpoint import load_checkpoint
+from train_world.single_state.data import load_training_data
+from train_world.single_state.field import SegmentedField
+from train_world.single_state.losses import identity_loss, neighbour_kl_loss, photometric_loss, ssim
+from train_world.single_state.presets import TrainConfig, get_preset
+from train_world.single_state.strategy import DensifyStrategy, StrategyConfig
+from train_world.single_state.trainer import Trainer, TrainingDiverged, make_optimizers
 from train_world.world_writer import encode_world
 
 
@@ -235,7 +235,7 @@ def test_cli_help_and_quick_run(tiny, tmp_path, capsys):
     n = w.background.num + sum(o.gaussians.num for o in w.objects.values())
     assert n == w.metadata["num_gaussians"]
     assert (tmp_path / "w.dsgw.ckpt").exists()
-    # (without --single-state, dsg-train hands two-state captures to train_world.dual; not exercised here)
+    # (without --single-state, dsg-train hands two-state captures to train_world.dual_state; not exercised here)
     bad = tmp_path / "nothing"
     bad.mkdir()
     assert cli.main([str(bad), "--out", str(out), "--single-state", "--quiet"]) == 2

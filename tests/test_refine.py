@@ -1,4 +1,4 @@
-"""Refinement of a merged two-state world on both states' training views (train_world.dual.refine)."""
+"""Refinement of a merged two-state world on both states' training views (train_world.dual_state.refine)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 
 from dsg_gym.world import load_world
 from tests._captures import tiny_capture
-from train_world.dual import cli as dual_cli
-from train_world.dual.refine import RefineConfig, StateViews, main as refine_main, refine_world, training_views_of
-from train_world.evaluate import render_gaussians
+from train_world.dual_state import cli as dual_cli
+from train_world.dual_state.refine import RefineConfig, StateViews, main as refine_main, refine_world, training_views_of
+from train_world.eval.evaluate import render_gaussians
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +97,7 @@ def test_refinement_rejects_bad_input_and_leaves_the_world_alone(unrefined):
 
 def test_dsg_train_refines_like_the_standalone_command(unrefined, tmp_path, capsys):
     cap, path = unrefined
-    # dsg-train with refinement = the same training without it, then `python -m train_world.dual.refine`
+    # dsg-train with refinement = the same training without it, then `python -m train_world.dual_state.refine`
     inproc = tmp_path / "in.dsgw"
     assert dual_cli.main([str(cap), "--out", str(inproc), "--preset", "quick", "--iterations", "60",
                           "--prune-every", "10", "--refine-steps", "25", "--quiet"]) == 0
@@ -112,7 +112,7 @@ def test_dsg_train_refines_like_the_standalone_command(unrefined, tmp_path, caps
     assert refine_main([str(after), str(cap), "--out", str(tmp_path / "x.dsgw"), "--quiet"]) == 2
     assert "refined already" in capsys.readouterr().err
     single = tmp_path / "single.dsgw"
-    from train_world.baselines import train_single_state
+    from train_world.suite.baselines import train_single_state
 
     train_single_state(cap, single, preset="quick", iterations=20)
     assert refine_main([str(single), str(cap), "--out", str(tmp_path / "x.dsgw"), "--quiet"]) == 2
@@ -134,7 +134,7 @@ def test_refinement_steps_do_not_block_resuming_or_branching(unrefined, tmp_path
 
 
 def test_presets_refine_by_default_except_the_paper_s():
-    from train_world.recon.presets import get_preset
+    from train_world.single_state.presets import get_preset
 
     assert get_preset("default").dual_refine_steps == 4000 and get_preset("paper").dual_refine_steps == 0
     assert get_preset("quick").dual_refine_steps > 0

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from dsg_gym.world import load_world
-from train_world.evaluate import main as ev_main
-from train_world.suite import main as suite_main
+from train_world.eval.evaluate import main as ev_main
+from train_world.suite.runner import main as suite_main
 
 
 def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
@@ -75,12 +75,12 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
     # both schedules named, before anything was written
     table_before = (out0 / "table.json").read_bytes()
     with pytest.raises(ValueError, match=r"two_blocks/BCP: .*schedule \[40, 20, 0\].*asks for \[40, 20, 40\]"):
-        from train_world.suite import run_suite
+        from train_world.suite.runner import run_suite
 
         run_suite(out0, ["two_blocks"], ["BCP"], preset="quick", iterations=40)
     assert (out0 / "table.json").read_bytes() == table_before
     with pytest.raises(ValueError, match="refine_steps must be a non-negative integer"):
-        from train_world.suite import run_suite
+        from train_world.suite.runner import run_suite
 
         run_suite(tmp_path / "bad", ["two_blocks"], ["BCP"], refine_steps=-1)
     assert not (tmp_path / "bad").exists()  # refused before anything was written
@@ -137,7 +137,7 @@ def _ours(psnr: float, steps: int, joint: int | None) -> dict:
 
 
 def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
-    from train_world.suite import merge_tables, two_state_schedule
+    from train_world.suite.runner import merge_tables, two_state_schedule
 
     # a table written before schedules were recorded: its rows say 3000 steps and nothing of the joint phase,
     # which then started at half the steps
@@ -177,7 +177,7 @@ def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
 
 
 def test_merge_refuses_rows_that_held_out_different_views():
-    from train_world.suite import merge_tables
+    from train_world.suite.runner import merge_tables
 
     # before session 15 every training held out every 8th view (the records do not say); since, none
     old = _table({"two_blocks": {"a": _run(29.0, 1), "BCP": _ours(36.0, 4500, 3000)},
@@ -203,7 +203,7 @@ def test_committed_ablation_tables_merge_as_the_readme_says(files):
     seven holds the order the README reports."""
     from pathlib import Path
 
-    from train_world.suite import merge_tables
+    from train_world.suite.runner import merge_tables
 
     root = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
     m = merge_tables([json.loads((root / f).read_text()) for f in files], ["B", "BC", "BCP"])

@@ -9,7 +9,7 @@ import pytest
 from _captures import tiny_capture
 
 from benchmarks.train_step import main
-from train_world.dual import cli as dual_cli
+from train_world.dual_state import cli as dual_cli
 
 
 def _check(r: dict, renders_joint: float) -> None:

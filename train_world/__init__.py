@@ -10,6 +10,6 @@ if "NUMBA_THREADING_LAYER" not in _os.environ:
     _numba.config.THREADING_LAYER = "omp"
 
 # How torch's and numba's OpenMP pools wait between parallel regions: before either loads OpenMP
-from . import _openmp
+from train_world import _openmp
 
 _openmp.configure()

@@ -25,7 +25,7 @@ from dsg_gym.world import (
     WorldObject,
     transform_gaussians,
 )
-from train_world.data.format import atomic_write_bytes
+from train_world.capture.format import atomic_write_bytes
 
 __all__ = ["build_world", "encode_world", "write_world"]
 

@@ -14,12 +14,12 @@ import torch
 from _captures import tiny_capture
 
 from dsg_gym.world import load_world
-from train_world.data import format as data_format
-from train_world.recon import cli
-from train_world.recon.checkpoint import CheckpointError, load_checkpoint
-from train_world.recon.data import load_training_data
-from train_world.recon.presets import TrainConfig, get_preset
-from train_world.recon.trainer import Trainer, TrainingDiverged
+from train_world.capture import format as data_format
+from train_world.single_state import cli
+from train_world.single_state.checkpoint import CheckpointError, load_checkpoint
+from train_world.single_state.data import load_training_data
+from train_world.single_state.presets import TrainConfig, get_preset
+from train_world.single_state.trainer import Trainer, TrainingDiverged
 
 STEPS, EVERY = 12, 4
 

@@ -6,6 +6,6 @@ Modules: :mod:`.spec` (scene descriptions), :mod:`.shapes` (exact shape geometry
 Importing this package does not import MuJoCo; the submodules that need it set ``MUJOCO_GL=egl`` by default.
 """
 
-from .spec import SceneSpec, default_scene_names, load_scene_spec, resolve_scene
+from train_world.synth.spec import SceneSpec, default_scene_names, load_scene_spec, resolve_scene
 
 __all__ = ["SceneSpec", "default_scene_names", "load_scene_spec", "resolve_scene"]

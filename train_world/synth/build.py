@@ -30,9 +30,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .shapes import geom_size, mesh_vertices, rest_rotation, resting_height, yaw_rotation  # noqa: E402
-from .spec import Appearance, LightSpec, SceneSpec, Shape  # noqa: E402
-from .textures import pattern_texture, surface_texture  # noqa: E402
+from train_world.synth.shapes import geom_size, mesh_vertices, rest_rotation, resting_height, yaw_rotation  # noqa: E402
+from train_world.synth.spec import Appearance, LightSpec, SceneSpec, Shape  # noqa: E402
+from train_world.synth.textures import pattern_texture, surface_texture  # noqa: E402
 
 __all__ = ["CAMERA_LIGHT", "LIGHTING", "RENDER_CAMERA", "BuiltScene", "build_scene", "set_object_poses"]
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .spec import OrbitSpec
+from train_world.synth.spec import OrbitSpec
 
 __all__ = ["look_at_opengl", "orbit_c2w", "smooth_wobble"]
 

@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from .spec import SpecError, default_scene_names, resolve_scene
+from train_world.synth.spec import SpecError, default_scene_names, resolve_scene
 
 __all__ = ["main"]
 
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.scene or args.out is None:
         _parser().error("--scene and --out are required (or use --list)")
-    from .generate import GenerateConfig, generate_scene  # imports MuJoCo
+    from train_world.synth.generate import GenerateConfig, generate_scene  # imports MuJoCo
 
     try:
         cfg = GenerateConfig(

@@ -1,4 +1,4 @@
-"""Generate one synthetic dual-state capture on disk (the layout of :mod:`train_world.data.format`).
+"""Generate one synthetic dual-state capture on disk (the layout of :mod:`train_world.capture.format`).
 
 Determinism: every random choice comes from ``numpy.random.Generator`` streams derived from ``(seed, label)``
 (labels such as ``"states"`` or ``"cameras/state1"``), PNGs are encoded without timestamps and JSON keeps a
@@ -18,20 +18,12 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from ..data.format import (  # noqa: E402
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    atomic_write_json,
-    encode_png,
-    matrix_to_list,
-    staged_directory,
-    write_state_views,
-)
-from .build import LIGHTING, build_scene, set_object_poses  # noqa: E402
-from .cameras import orbit_c2w  # noqa: E402
-from .render import SceneRenderer, depth_to_png_units  # noqa: E402
-from .spec import SceneSpec, resolve_scene  # noqa: E402
-from .states import sample_states, verify_with_mujoco  # noqa: E402
+from train_world.capture.format import FORMAT_NAME, FORMAT_VERSION, atomic_write_json, encode_png, matrix_to_list, staged_directory, write_state_views
+from train_world.synth.build import LIGHTING, build_scene, set_object_poses  # noqa: E402
+from train_world.synth.cameras import orbit_c2w  # noqa: E402
+from train_world.synth.render import SceneRenderer, depth_to_png_units  # noqa: E402
+from train_world.synth.spec import SceneSpec, resolve_scene  # noqa: E402
+from train_world.synth.states import sample_states, verify_with_mujoco  # noqa: E402
 
 __all__ = ["GENERATOR_VERSION", "GenerateConfig", "generate_scene", "rng_for"]
 

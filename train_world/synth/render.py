@@ -20,7 +20,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .build import CAMERA_LIGHT, BuiltScene  # noqa: E402
+from train_world.synth.build import CAMERA_LIGHT, BuiltScene  # noqa: E402
 
 __all__ = ["SceneRenderer", "depth_to_png_units"]
 

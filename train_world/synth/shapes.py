@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .spec import Shape
+from train_world.synth.spec import Shape
 
 __all__ = [
     "geom_size",

@@ -28,7 +28,7 @@ import json
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-from .textures import PATTERNS
+from train_world.synth.textures import PATTERNS
 
 __all__ = [
     "Appearance",

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .shapes import mesh_vertices, pose_matrix, rest_rotation, resting_height, support, yaw_rotation
-from .spec import SceneSpec, Shape
+from train_world.synth.shapes import mesh_vertices, pose_matrix, rest_rotation, resting_height, support, yaw_rotation
+from train_world.synth.spec import SceneSpec, Shape
 
 __all__ = [
     "Grid",
@@ -269,7 +269,7 @@ def verify_with_mujoco(
 ) -> None:
     """Set ``poses`` in MuJoCo and check its contacts: no object penetrates anything, and every object touches
     the surface (contact distance within ``rest_tol``)."""
-    from .build import set_object_poses
+    from train_world.synth.build import set_object_poses
 
     set_object_poses(built, data, poses)
     gobj = built.geom_object_ids

@@ -14,7 +14,7 @@ longer training, is the gain (session 16, ``four_mixed``: 1000 steps on both sta
 on ``state1``'s views alone +0.06 dB). The step takes one 3-channel render, about 45 ms on two cores at 128 px.
 
 Deterministic for a given world, views, configuration and thread count. ``dsg-train`` runs it after merging
-(the preset's ``dual_refine_steps``, ``--refine-steps``); ``python -m train_world.dual.refine`` refines a world
+(the preset's ``dual_refine_steps``, ``--refine-steps``); ``python -m train_world.dual_state.refine`` refines a world
 file that was written without it.
 """
 
@@ -36,10 +36,10 @@ from tqdm import tqdm
 
 from dsg_gym.gaussians import GaussianSet, activate_opacity, activate_scale
 from dsg_gym.world import World, WorldObject
-from train_world.recon.field import SegmentedField
-from train_world.recon.losses import photometric_loss
+from train_world.single_state.field import SegmentedField
+from train_world.single_state.losses import photometric_loss
 
-from .transfer import ObjectTransfer
+from train_world.dual_state.transfer import ObjectTransfer
 
 __all__ = ["RefineConfig", "StateViews", "refine_world", "training_views_of"]
 
@@ -190,7 +190,7 @@ def refine_world(
 def training_views_of(world: World, capture: str | Path) -> dict[str, StateViews]:
     """The training views of a two-state world's training states, loaded from ``capture`` as ``dsg-train``
     used them (its held-out views left out, its downscale and background colour)."""
-    from train_world.data.loader import load_capture
+    from train_world.capture.loader import load_capture
 
     meta = world.metadata
     states = meta.get("training_states")
@@ -210,7 +210,7 @@ def training_views_of(world: World, capture: str | Path) -> dict[str, StateViews
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m train_world.dual.refine",
+        prog="python -m train_world.dual_state.refine",
         description="Refine a two-state world on both states' training views (what dsg-train does after "
         "merging since session 16; for worlds written without it). Writes a new world file.",
     )

@@ -78,7 +78,7 @@ class Preset:
     # fraction of the two-state steps that is reconstruction only (DSG-World: 0.5, 10k + 10k)
     dual_joint_from: float = 0.5
     # not DSG-World's: Adam steps refining the merged world on both states' training views after training
-    # (:mod:`train_world.dual.refine`; 0: off, as in the paper)
+    # (:mod:`train_world.dual_state.refine`; 0: off, as in the paper)
     dual_refine_steps: int = 0
     lrs: LearningRates = field(default_factory=LearningRates)
 
@@ -132,7 +132,7 @@ _AA = {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": 0.
 # 1.3) 36.04 dB at the test states in 10.7 min here, against 35.49 dB in 8.4 min for 1500 + 1500 steps and
 # 35.62 dB in 11.9 min for 4000 + 1000 (session 14), all with 42 of each state's 48 views; training on all 48
 # (``dsg-train``'s default on captures with test states since session 15) gives 36.23 dB. Then 4000 steps refine
-# the merged world on both states' views (:mod:`train_world.dual.refine`, about 3 min): 37.93 dB (session 16).
+# the merged world on both states' views (:mod:`train_world.dual_state.refine`, about 3 min): 37.93 dB (session 16).
 PRESETS: dict[str, Preset] = {
     "quick": Preset(
         name="quick",

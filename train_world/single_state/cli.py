@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from .presets import PRESETS, TrainConfig, get_preset, mip_overrides
+from train_world.single_state.presets import PRESETS, TrainConfig, get_preset, mip_overrides
 
 __all__ = ["main"]
 
@@ -100,17 +100,17 @@ def depth_overrides(weight: float | None) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from train_world.dual.cli import wants_two_state
+    from train_world.dual_state.cli import wants_two_state
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    if wants_two_state(argv):  # two training states: DSG-World's two-state training (train_world.dual)
-        from train_world.dual.cli import main as dual_main
+    if wants_two_state(argv):  # two training states: DSG-World's two-state training (train_world.dual_state)
+        from train_world.dual_state.cli import main as dual_main
 
         return dual_main(argv)
     args = _parser().parse_args(argv)
-    from .checkpoint import CheckpointError
-    from .data import load_training_data
-    from .trainer import Trainer, TrainingDiverged
+    from train_world.single_state.checkpoint import CheckpointError
+    from train_world.single_state.data import load_training_data
+    from train_world.single_state.trainer import Trainer, TrainingDiverged
 
     ckpt = args.checkpoint or args.out.with_name(args.out.name + ".ckpt")
     try:

@@ -23,14 +23,14 @@ import torch
 
 from dsg_gym.sh_basis import rotate_sh
 from dsg_gym.world import Cameras, World
-from train_world.recon.field import PARAM_NAMES, SegmentedField, rigid_transform_gaussians
+from train_world.single_state.field import PARAM_NAMES, SegmentedField, rigid_transform_gaussians
 from train_world.world_writer import build_world
 
-from .merge import co_paste_background
-from .transfer import gaussian_transforms, relative_transforms
+from train_world.dual_state.merge import co_paste_background
+from train_world.dual_state.transfer import gaussian_transforms, relative_transforms
 
 if TYPE_CHECKING:
-    from .trainer import DualTrainer
+    from train_world.dual_state.trainer import DualTrainer
 
 __all__ = ["choose_object_sources", "merged_field", "merged_world"]
 

@@ -91,8 +91,8 @@ def _provenance() -> dict[str, Any]:
 def two_state_schedule(preset: str, iterations: int | None, refine_steps: int | None = None) -> list[int]:
     """[steps, first joint step, refinement steps] of ``dsg-train``'s two-state run with this preset,
     ``--iterations`` and ``--refine-steps`` (``None``: the preset's)."""
-    from train_world.dual.cli import scaled_preset
-    from train_world.dual.trainer import joint_start_step
+    from train_world.dual_state.cli import scaled_preset
+    from train_world.dual_state.trainer import joint_start_step
 
     p = scaled_preset(preset, iterations, two_state=True)
     refine = p.dual_refine_steps if refine_steps is None else int(refine_steps)
@@ -122,7 +122,7 @@ def _one_value(values: dict[tuple[str, str], Any], what: str) -> Any:
 def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]:
     """(steps, first joint step, refinement steps) that trained one of ours' rows: from its training record,
     else the table's (records and tables before session 16 had no refinement: 0); () when neither tells."""
-    from train_world.dual.trainer import joint_start_step
+    from train_world.dual_state.trainer import joint_start_step
 
     train = row.get("train") or {}
     if "iterations" in train:
@@ -191,9 +191,9 @@ def _grid_png(
     scene_dir: Path, capture: Path, worlds: dict[str, Path], out_png: Path, state: str, rows: int = 4
 ):
     from dsg_gym.world import load_world
-    from train_world.data.format import atomic_write_bytes, encode_png
-    from train_world.evaluate import _grid, _poses_for, _u8, render_gaussians
-    from train_world.recon.data import load_eval_views
+    from train_world.capture.format import atomic_write_bytes, encode_png
+    from train_world.eval.evaluate import _grid, _poses_for, _u8, render_gaussians
+    from train_world.single_state.data import load_eval_views
 
     renders = {}
     views = None
@@ -256,9 +256,9 @@ def run_suite(
     """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``.
     ``refine_steps``: refinement steps of ours (``dsg-train --refine-steps``; ``None``: the preset's, 0: the
     paper's method without refinement)."""
-    from train_world.data import load_capture
-    from train_world.evaluate import evaluate_test_states
-    from train_world.recon.presets import get_preset
+    from train_world.capture import load_capture
+    from train_world.eval.evaluate import evaluate_test_states
+    from train_world.single_state.presets import get_preset
 
     if refine_steps is not None and (isinstance(refine_steps, bool) or int(refine_steps) != refine_steps
                                      or refine_steps < 0):
@@ -303,9 +303,9 @@ def run_suite(
             it += ["--max-gaussians", str(max_gaussians)]
         if mip is not None:
             it += ["--mip" if mip else "--no-mip"]
-        single = [py, "-m", "train_world.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed),
+        single = [py, "-m", "train_world.suite.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed),
                   "--resume", *it]
-        dual = [py, "-m", "train_world.dual.cli", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
+        dual = [py, "-m", "train_world.dual_state.cli", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
                 *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]), "--resume", *it,
                 *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))])]
         recon_ckpt, recon_info = wdir / "recon.ckpt", wdir / "recon.json"
@@ -321,7 +321,7 @@ def run_suite(
                     if not a_world.is_file():
                         _run_json([*single, "--out", str(a_world), "--checkpoint", str(wdir / "a.dsgw.ckpt")],
                                   logs / "a.log")
-                    cmd = [py, "-m", "train_world.baselines", "knn", str(a_world), "--out", str(world)]
+                    cmd = [py, "-m", "train_world.suite.baselines", "knn", str(a_world), "--out", str(world)]
                 else:
                     # the ablations share one reconstruction phase (identical in all of them), then branch
                     if not recon_info.is_file():
@@ -357,8 +357,8 @@ def _f(v, nd=2):
 
 
 def _write_tables(out: Path, results: dict[str, Any]) -> None:
-    from train_world.data.format import atomic_write_bytes, atomic_write_json
-    from train_world.evaluate import mean_of_means
+    from train_world.capture.format import atomic_write_bytes, atomic_write_json
+    from train_world.eval.evaluate import mean_of_means
 
     scenes = list(results["scenes"])
     methods = results["methods"]

@@ -1,7 +1,7 @@
 """``dsg-train`` on a capture with two training states: DSG-World's two-state training (``DualTrainer``).
 
-``train_world.recon.cli`` hands captures with ``state1`` and ``state2`` to :func:`main` unless
-``--single-state`` (or ``--state``) is given; ``python -m train_world.dual.cli`` runs it directly.
+``train_world.single_state.cli`` hands captures with ``state1`` and ``state2`` to :func:`main` unless
+``--single-state`` (or ``--state``) is given; ``python -m train_world.dual_state.cli`` runs it directly.
 
 Examples::
 
@@ -15,7 +15,7 @@ checkpoint interval) to ``N`` steps. Each step trains both fields; the first ``-
 reconstruction only. Checkpoints go to ``WORLD.ckpt`` (override with ``--checkpoint``). Every view of both
 states trains when the capture has test states (their cameras are what ``dsg-eval`` measures); without test
 states every 8th view of each state is held out for evaluation (``--holdout-every``). After merging, the world
-is refined on both states' training views (``--refine-steps``, :mod:`train_world.dual.refine`; not part of
+is refined on both states' training views (``--refine-steps``, :mod:`train_world.dual_state.refine`; not part of
 DSG-World: the ``paper`` preset leaves it off).
 """
 
@@ -29,8 +29,8 @@ import sys
 import time
 from pathlib import Path
 
-from train_world.recon.cli import add_depth_argument, add_mip_argument, depth_overrides
-from train_world.recon.presets import PRESETS, Preset, TrainConfig, get_preset, mip_overrides
+from train_world.single_state.cli import add_depth_argument, add_mip_argument, depth_overrides
+from train_world.single_state.presets import PRESETS, Preset, TrainConfig, get_preset, mip_overrides
 
 __all__ = ["default_holdout_every", "has_two_training_states", "main", "scaled_preset", "wants_two_state"]
 
@@ -80,7 +80,7 @@ def has_two_training_states(path: str | Path) -> bool:
     if not (p.is_dir() and (p / "scene.json").is_file()):
         return False
     try:
-        from train_world.data import load_capture
+        from train_world.capture import load_capture
 
         cap = load_capture(p, states=[], load_depth=False)
     except ValueError:  # CaptureError: not a readable capture
@@ -92,7 +92,7 @@ def default_holdout_every(path: str | Path) -> int:
     """Views held out of each training state by default: none (0) when the capture has test states, whose
     cameras are the evaluation (``dsg-eval``), so every captured view trains; else every
     :data:`HOLDOUT_WITHOUT_TEST_STATES`-th view, to have held-out views to evaluate on."""
-    from train_world.data import load_capture
+    from train_world.capture import load_capture
 
     cap = load_capture(Path(path), states=[], load_depth=False)  # metadata only
     return 0 if any(split == "test" for split in cap.splits.values()) else HOLDOUT_WITHOUT_TEST_STATES
@@ -173,7 +173,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def config_from_args(args: argparse.Namespace):
-    from .trainer import DualConfig
+    from train_world.dual_state.trainer import DualConfig
 
     preset = dataclasses.replace(
         scaled_preset(args.preset, args.iterations, args.max_gaussians, two_state=True), **mip_overrides(args.mip),
@@ -202,11 +202,11 @@ def config_from_args(args: argparse.Namespace):
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from train_world.recon.checkpoint import CheckpointError
-    from train_world.recon.trainer import TrainingDiverged
+    from train_world.single_state.checkpoint import CheckpointError
+    from train_world.single_state.trainer import TrainingDiverged
 
-    from .refine import RefineConfig, StateViews, refine_world
-    from .trainer import DualTrainer
+    from train_world.dual_state.refine import RefineConfig, StateViews, refine_world
+    from train_world.dual_state.trainer import DualTrainer
 
     ckpt = args.checkpoint or args.out.with_name(args.out.name + ".ckpt")
     t0 = time.perf_counter()

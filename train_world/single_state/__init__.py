@@ -9,9 +9,9 @@ How the OpenMP thread pools of torch and numba wait is set when ``train_world`` 
 (:mod:`train_world._openmp`).
 """
 
-from .field import Classifier, RenderOutput, SegmentedField, rigid_transform_gaussians
-from .presets import PRESETS, LearningRates, Preset, TrainConfig, get_preset
-from .strategy import DensifyStrategy, StrategyConfig
+from train_world.single_state.field import Classifier, RenderOutput, SegmentedField, rigid_transform_gaussians
+from train_world.single_state.presets import PRESETS, LearningRates, Preset, TrainConfig, get_preset
+from train_world.single_state.strategy import DensifyStrategy, StrategyConfig
 
 __all__ = [
     "PRESETS",

@@ -1,7 +1,7 @@
 """``DualTrainer``: DSG-World's joint optimisation of two segmented fields with one shared classifier.
 
 Per step both fields take one view of their own state (Gaussian Grouping's ``L_r`` each, as in
-:mod:`train_world.recon`). The first ``joint_from`` fraction of the steps is reconstruction only; then
+:mod:`train_world.single_state`). The first ``joint_from`` fraction of the steps is reconstruction only; then
 
 ``L = L_r(G1) + L_r(G2) + lambda_a L_align + lambda_p L_pseudo``
 
@@ -11,7 +11,7 @@ collision-free configuration and rendered from one training camera (P; every ``p
 step: 2 by default, 1 = every step as in the paper; on five_small both gave 38.1 dB at the test states,
 and 2 saves a tenth of the training time). Co-pruning (C) runs every
 ``prune_every`` joint steps and once at the end. Each field keeps its own Adam optimisers and 3DGS
-densification (:class:`~train_world.recon.strategy.DensifyStrategy`, driven by its reconstruction render);
+densification (:class:`~train_world.single_state.strategy.DensifyStrategy`, driven by its reconstruction render);
 the classifier has one Adam. Object labels (for the transfer) are the classifier's argmax on each Gaussian's
 identity feature, recomputed every step. The merged world is built by :mod:`.world`.
 """
@@ -29,21 +29,21 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from train_world.recon.checkpoint import (
+from train_world.single_state.checkpoint import (
     load_checkpoint,
     optimizer_from_tensors,
     optimizer_to_tensors,
     save_checkpoint,
 )
-from train_world.recon.data import TrainData, load_training_data
-from train_world.recon.field import PARAM_NAMES, SegmentedField
-from train_world.recon.presets import TrainConfig
-from train_world.recon.trainer import Trainer, TrainingDiverged, check_gradients, make_optimizers, means_lr
+from train_world.single_state.data import TrainData, load_training_data
+from train_world.single_state.field import PARAM_NAMES, SegmentedField
+from train_world.single_state.presets import TrainConfig
+from train_world.single_state.trainer import Trainer, TrainingDiverged, check_gradients, make_optimizers, means_lr
 
-from .losses import align_loss, pseudo_loss
-from .merge import co_prune_masks, object_footprints_xy, robust_object_points
-from .pseudo import footprint_radii, sample_pseudo_state
-from .transfer import ObjectTransfer, gaussian_transforms, object_labels, relative_transforms
+from train_world.dual_state.losses import align_loss, pseudo_loss
+from train_world.dual_state.merge import co_prune_masks, object_footprints_xy, robust_object_points
+from train_world.dual_state.pseudo import footprint_radii, sample_pseudo_state
+from train_world.dual_state.transfer import ObjectTransfer, gaussian_transforms, object_labels, relative_transforms
 
 __all__ = ["DualConfig", "DualTrainer", "joint_start_step"]
 
@@ -433,7 +433,7 @@ class DualTrainer:
     # ------------------------------------------------------------------ result
     def world(self, extra_metadata: dict[str, Any] | None = None):
         """The merged world (:func:`.world.merged_world`)."""
-        from .world import merged_world
+        from train_world.dual_state.world import merged_world
 
         return merged_world(self, extra_metadata)
 

@@ -19,7 +19,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from train_world.recon.losses import identity_loss, l1_loss
+from train_world.single_state.losses import identity_loss, l1_loss
 
 __all__ = ["align_loss", "pseudo_loss", "semantic_divergence"]
 

@@ -1,4 +1,4 @@
-"""``dsg-import``: bring real captures into the capture layout of :mod:`train_world.data` as one state.
+"""``dsg-import``: bring real captures into the capture layout of :mod:`train_world.capture` as one state.
 
 * ``dsg-import llff DIR --out OUT [--factor 8] [--threshold 127]``: an LLFF capture (``poses_bounds.npy``,
   ``images[_F]/``, optional ``masks[_F]/`` with one grey mask per image, matched by file stem).
@@ -24,19 +24,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .data.cameras import check_rigid
-from .data.format import (
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    atomic_write_bytes,
-    atomic_write_json,
-    encode_png,
-    frame_entry,
-    matrix_to_list,
-    staged_directory,
-    transforms_header,
-)
-from .data.loader import CaptureError
+from train_world.capture.cameras import check_rigid
+from train_world.capture.format import FORMAT_NAME, FORMAT_VERSION, atomic_write_bytes, atomic_write_json, encode_png, frame_entry, matrix_to_list, staged_directory, transforms_header
+from train_world.capture.loader import CaptureError
 
 __all__ = ["import_llff", "import_transforms", "llff_to_opengl_c2w", "main"]
 
@@ -244,7 +234,7 @@ def import_transforms(
     src = Path(src)
     tj = src / "transforms.json" if src.is_dir() else src
     base = tj.parent
-    from .data.loader import _read_json
+    from train_world.capture.loader import _read_json
 
     meta = _read_json(tj)
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:

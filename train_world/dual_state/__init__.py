@@ -5,10 +5,10 @@ Modules: :mod:`.transfer` (object-aware state transfer T), :mod:`.losses` (L_ali
 world), :mod:`.trainer` (``DualTrainer``, ``DualConfig``), :mod:`.cli` (``dsg-train`` on two states).
 """
 
-from .losses import align_loss, pseudo_loss, semantic_divergence
-from .merge import co_paste_background, co_prune_masks, footprint_contains, object_footprints_xy
-from .pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
-from .transfer import gaussian_transforms, object_labels, relative_transforms
+from train_world.dual_state.losses import align_loss, pseudo_loss, semantic_divergence
+from train_world.dual_state.merge import co_paste_background, co_prune_masks, footprint_contains, object_footprints_xy
+from train_world.dual_state.pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
+from train_world.dual_state.transfer import gaussian_transforms, object_labels, relative_transforms
 
 __all__ = [
     "align_loss",

@@ -2,7 +2,7 @@
 
     dsg-compact WORLD --out WORLD2 [--max-psnr-drop 0.3] [--capture CAPTURE] [--report FILE]
 
-Steps (the per-Gaussian scores come from :mod:`train_world.importance`):
+Steps (the per-Gaussian scores come from :mod:`train_world.compact.importance`):
 
 1. **SH bands.** For real orthonormal SH, ``sum_m Y_lm(d)^2 = (2l+1) / 4pi`` for every direction ``d``, so
    dropping the bands above ``L`` changes a colour channel by at most ``sqrt(sum_{l>L} (2l+1)/4pi) *
@@ -24,7 +24,7 @@ Steps (the per-Gaussian scores come from :mod:`train_world.importance`):
    (each score assumes the others stay: the discs of a uniformly coloured face all look redundant, but not
    at once); then the scores are recomputed. Vertices of an object's collision hull (the convex hull of its
    means with opacity >= 0.2, what :class:`dsg_gym.physics.PhysicsProxy` builds) are never removed.
-5. **Budget.** Every round is checked (:mod:`train_world.compact_checks`) and the round that breaks the
+5. **Budget.** Every round is checked (:mod:`train_world.compact.checks`) and the round that breaks the
    budget is bisected. Without ``--capture`` the check is self-consistency: the compacted world against the
    original, composited by the runtime renderer at every state the world stores (captured and test poses)
    from ``--validation-views`` of the plausible cameras. An added error of mean square ``d`` in a view
@@ -34,7 +34,7 @@ Steps (the per-Gaussian scores come from :mod:`train_world.importance`):
    the reference is the original's measured mean PSNR on the capture's test states, and the measured drop
    there (``dsg-eval``, original minus compacted, mean over test states) must be within budget too.
 6. **Refit.** ``--refit-cycles`` times: the survivors' colours, opacities, shrinking scales and (background
-   only) means are fitted to the original part's renders (:mod:`train_world.refit`, ``--refit-steps`` Adam
+   only) means are fitted to the original part's renders (:mod:`train_world.compact.refit`, ``--refit-steps`` Adam
    steps; kept only if the check improves), then pruning resumes from the refitted world (except after the
    last refit). Object means and hull-vertex opacities stay, so the physics proxy is unchanged.
 
@@ -65,8 +65,8 @@ import numpy as np
 
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.world import World, load_world
-from train_world.compact_checks import CaptureCheck, SelfCheck, with_parts
-from train_world.importance import SceneCameras, gaussian_importance, scene_cameras, sphere_cameras
+from train_world.compact.checks import CaptureCheck, SelfCheck, with_parts
+from train_world.compact.importance import SceneCameras, gaussian_importance, scene_cameras, sphere_cameras
 
 __all__ = ["CompactConfig", "compact_world", "hull_vertices", "main", "sh_change_bound", "truncate_sh"]
 
@@ -358,7 +358,7 @@ class _Search:
     def refit(self, originals: list[GaussianSet]) -> bool:
         """Refit every part's survivors to its original renders; kept only if the check passes and improves.
         Parts are compacted to their survivors (removed rows are dropped for good)."""
-        from train_world.refit import refit
+        from train_world.compact.refit import refit
 
         if self.cfg.fraction is not None:  # no budget search: compare with the pruned state
             self.res = self.run_check(None)
@@ -575,7 +575,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     text = json.dumps(report, indent=2)
     if a.report is not None:
-        from train_world.data.format import atomic_write_bytes
+        from train_world.capture.format import atomic_write_bytes
 
         atomic_write_bytes(a.report, (text + "\n").encode("utf-8"))
     print(text)

@@ -29,12 +29,12 @@ from dsg_gym.gaussians import GaussianSet  # noqa: E402
 from dsg_gym.poses import rotmat_to_quat  # noqa: E402
 from dsg_gym.world_model import Cameras, TableBounds, WorldModel  # noqa: E402
 
-from .synth.build import build_scene, set_object_poses  # noqa: E402
-from .synth.cameras import orbit_c2w  # noqa: E402
-from .synth.generate import GenerateConfig, rng_for  # noqa: E402
-from .synth.render import SceneRenderer  # noqa: E402
-from .synth.spec import SceneSpec, resolve_scene  # noqa: E402
-from .synth.states import sample_states  # noqa: E402
+from train_world.synth.build import build_scene, set_object_poses  # noqa: E402
+from train_world.synth.cameras import orbit_c2w  # noqa: E402
+from train_world.synth.generate import GenerateConfig, rng_for  # noqa: E402
+from train_world.synth.render import SceneRenderer  # noqa: E402
+from train_world.synth.spec import SceneSpec, resolve_scene  # noqa: E402
+from train_world.synth.states import sample_states  # noqa: E402
 
 __all__ = ["GeomWorldConfig", "build_geom_world", "capture_cameras", "opengl_to_viewmat"]
 
@@ -413,10 +413,10 @@ def to_world(model: WorldModel):
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m train_world.geom_world --scene two_blocks --out assets/worlds/default_geom.dsgworld``"""
+    """``python -m train_world.synth.geom_world --scene two_blocks --out assets/worlds/default_geom.dsgworld``"""
     import argparse
 
-    from .world_writer import write_world
+    from train_world.world_writer import write_world
 
     ap = argparse.ArgumentParser(description="Write the geometry world of a synthetic scene as a world file.")
     ap.add_argument("--scene", default="two_blocks")

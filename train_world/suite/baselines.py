@@ -1,7 +1,7 @@
 """Single-state baselines for the DSG-World comparison (the paper's Table 1, segmentation rows).
 
 * **(a) segmentation only** (:func:`train_single_state`): one segmented field trained on ``state1``
-  (:class:`train_world.recon.trainer.Trainer`); its world moves the segmented object Gaussians to any
+  (:class:`train_world.single_state.trainer.Trainer`); its world moves the segmented object Gaussians to any
   configuration and leaves the hole they covered on the table.
 * **(b) + kNN background completion** (:func:`knn_complete`): Gaussian Grouping's completion of the hole:
   new flat Gaussians on a regular grid over each object's footprint at the reference state (on the table
@@ -45,10 +45,10 @@ def train_single_state(
     "train_seconds", "gaussians"}``. ``checkpoint``: where checkpoints go (None: none); ``resume``: continue
     from it when it exists (a killed run; ``train_seconds`` counts every part); ``holdout_every``: views held
     out of the state (None: as ``dsg-train``'s two-state default, none when the capture has test states)."""
-    from train_world.dual.cli import default_holdout_every, scaled_preset
-    from train_world.recon.data import load_training_data
-    from train_world.recon.presets import TrainConfig, mip_overrides
-    from train_world.recon.trainer import Trainer
+    from train_world.dual_state.cli import default_holdout_every, scaled_preset
+    from train_world.single_state.data import load_training_data
+    from train_world.single_state.presets import TrainConfig, mip_overrides
+    from train_world.single_state.trainer import Trainer
 
     p = dataclasses.replace(scaled_preset(preset, iterations, max_gaussians), **mip_overrides(mip))
     if holdout_every is None:
@@ -65,9 +65,9 @@ def train_single_state(
 
 
 def reference_footprints(world: World, state: str | None = None):
-    """Table-plane footprints (:func:`train_world.dual.merge.object_footprints_xy`) of the world's objects
+    """Table-plane footprints (:func:`train_world.dual_state.merge.object_footprints_xy`) of the world's objects
     at ``state`` (default: its reference state)."""
-    from train_world.dual.merge import object_footprints_xy, robust_object_points
+    from train_world.dual_state.merge import object_footprints_xy, robust_object_points
 
     state = state or world.metadata.get("reference_state")
     poses = world.poses[state]
@@ -100,7 +100,7 @@ def knn_complete(
     """
     from scipy.spatial import cKDTree
 
-    from train_world.dual.merge import footprint_contains
+    from train_world.dual_state.merge import footprint_contains
 
     bg = world.background
     fps = [f for f in reference_footprints(world) if f is not None]
@@ -164,7 +164,7 @@ def knn_complete(
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m train_world.baselines single CAPTURE --out W`` (a) / ``knn WORLD --out W`` (b)."""
+    """``python -m train_world.suite.baselines single CAPTURE --out W`` (a) / ``knn WORLD --out W`` (b)."""
     import argparse
     import json
     import resource
@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from train_world.world_writer import write_world
 
-    p = argparse.ArgumentParser(prog="python -m train_world.baselines", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m train_world.suite.baselines", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     a = sub.add_parser("single", help="baseline (a): train one field on state1")
     a.add_argument("capture", type=Path)

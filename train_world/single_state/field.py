@@ -260,7 +260,7 @@ class SegmentedField(nn.Module):
 
         ``transform``: a rigid transform ``[4,4]`` / ``[N,4,4]`` or a callable ``(means, quats) -> (means,
         quats)``; SH colours turn with it when it has a ``rotate_dirs(dirs [C,N,3])`` or a ``rotations()``
-        ``[N,3,3]`` method, as :class:`train_world.dual.transfer.ObjectTransfer` has; ``sh_degree``: the SH degree used (default:
+        ``[N,3,3]`` method, as :class:`train_world.dual_state.transfer.ObjectTransfer` has; ``sh_degree``: the SH degree used (default:
         the field's maximum); ``background``: ``[3]`` RGB (features get 0 behind); ``mask``: boolean ``[N]``
         selecting the Gaussians drawn; ``with_depth``: also the accumulated depth (the rasterizer's ``RGB+D``
         mode, ``RenderOutput.depth``; divide by ``alpha`` for the expected depth), differentiable in the means.

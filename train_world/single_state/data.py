@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from train_world.data import load_blender, load_capture
+from train_world.capture import load_blender, load_capture
 
 __all__ = ["TrainData", "load_eval_views", "load_training_data", "resolve_source"]
 

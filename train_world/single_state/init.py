@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .field import SegmentedField
-from .losses import knn_indices
+from train_world.single_state.field import SegmentedField
+from train_world.single_state.losses import knn_indices
 
 __all__ = [
     "camera_centres",

@@ -1,7 +1,7 @@
 """Adaptive density control (3DGS): clone, split, prune and opacity reset, as a strategy object.
 
 The strategy owns its statistics (accumulated view-space gradient norms and visibility counts) and edits a
-:class:`~train_world.recon.field.SegmentedField` together with its optimisers (one Adam per parameter,
+:class:`~train_world.single_state.field.SegmentedField` together with its optimisers (one Adam per parameter,
 ``{name: optimizer}``): rows added by clone/split get zero Adam moments, pruned rows lose theirs, the opacity
 reset zeroes the opacity moments. Usage per step::
 
@@ -22,7 +22,7 @@ import torch
 
 from dsg_gym.geometry import quat_to_rotmat
 
-from .field import PARAM_NAMES, SegmentedField
+from train_world.single_state.field import PARAM_NAMES, SegmentedField
 
 __all__ = ["DensifyStrategy", "StrategyConfig", "update_rows"]
 

@@ -1,7 +1,7 @@
 """Loading captures (synthetic or real) into tensors for training and evaluation.
 
 A capture folder holds ``scene.json`` and one folder per state with a ``transforms.json`` (see
-:mod:`train_world.data.format` and the README). :func:`load_views` reads one ``transforms.json`` (ours,
+:mod:`train_world.capture.format` and the README). :func:`load_views` reads one ``transforms.json`` (ours,
 nerfstudio's or NeRF-Blender's); :func:`load_capture` reads a whole capture; :func:`load_blender` reads a
 NeRF-Blender split (RGBA composited over a background colour).
 
@@ -26,8 +26,8 @@ import numpy as np
 import torch
 from PIL import Image
 
-from .cameras import check_rigid, focal_from_fov, intrinsics_matrix, opengl_c2w_to_viewmat
-from .format import DEPTH_SCALE
+from train_world.capture.cameras import check_rigid, focal_from_fov, intrinsics_matrix, opengl_c2w_to_viewmat
+from train_world.capture.format import DEPTH_SCALE
 
 __all__ = ["Capture", "CaptureError", "ObjectInfo", "Views", "load_blender", "load_capture", "load_views"]
 

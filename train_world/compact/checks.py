@@ -1,4 +1,4 @@
-"""Budget checks of ``dsg-compact`` (:mod:`train_world.compact`): how much a compacted world's renders drop.
+"""Budget checks of ``dsg-compact`` (:mod:`train_world.compact.compaction`): how much a compacted world's renders drop.
 
 :class:`SelfCheck` needs no ground truth: the compacted world against the original, composited by the runtime
 renderer at every state the world stores, from a subset of the plausible cameras; an added mean square error
@@ -20,7 +20,7 @@ import numpy as np
 
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.world import World, WorldObject
-from train_world.importance import SceneCameras
+from train_world.compact.importance import SceneCameras
 
 __all__ = ["CaptureCheck", "SelfCheck", "psnr", "with_parts"]
 
@@ -84,7 +84,7 @@ class CaptureCheck:
     are a narrow sample of the views an env may use)."""
 
     def __init__(self, world: World, capture: Path, cams: SceneCameras, bg, cfg, tmp: Path):
-        from train_world.data import load_capture
+        from train_world.capture import load_capture
 
         cap = load_capture(capture, states=[], load_depth=False)
         self.states = [s for s, split in cap.splits.items() if split == "test"]
@@ -96,7 +96,7 @@ class CaptureCheck:
         self.self_check = SelfCheck(world, cams, bg, cfg, float(np.mean(list(self.base.values()))))
 
     def _psnr(self, w: World) -> dict[str, float]:
-        from train_world.evaluate import evaluate
+        from train_world.eval.evaluate import evaluate
         from train_world.world_writer import write_world
 
         self.n += 1

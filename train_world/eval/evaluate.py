@@ -19,7 +19,7 @@ Writes ``DIR/report.json`` (per-view figures and ``"mean": {"psnr", "ssim", "mas
 their mean (``"mean"``, the same keys).
 
 ``dsg-eval --suite [dsg-suite options]`` runs the DSG-World comparison on the default scenes
-(:mod:`train_world.suite`).
+(:mod:`train_world.suite.runner`).
 
 Example::
 
@@ -44,9 +44,9 @@ import torch
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.splat import rasterize, spherical_harmonics
 from dsg_gym.world import World, WorldFormatError, load_world
-from train_world.data import CaptureError, load_capture
-from train_world.data.format import atomic_write_bytes, atomic_write_json, encode_png
-from train_world.recon.data import load_eval_views
+from train_world.capture import CaptureError, load_capture
+from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
+from train_world.single_state.data import load_eval_views
 
 __all__ = ["capture_test_states", "evaluate", "evaluate_test_states", "main", "mask_iou", "mean_of_means", "render_gaussians"]
 
@@ -368,7 +368,7 @@ def _default_state(world_path: Path, capture: Path) -> str | None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if "--suite" in argv:  # dsg-eval --suite: the comparison, with dsg-suite's options
-        from train_world.suite import main as suite_main
+        from train_world.suite.runner import main as suite_main
 
         return suite_main([a for a in argv if a != "--suite"])
     args = _parser().parse_args(argv)

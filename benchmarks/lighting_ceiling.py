@@ -25,6 +25,7 @@ import mujoco
 import numpy as np
 
 from dsg_gym.poses import pose7_to_matrix
+from train_world.eval.metrics import psnr_from_mse
 
 __all__ = ["lighting_ceiling", "main"]
 
@@ -32,8 +33,7 @@ __all__ = ["lighting_ceiling", "main"]
 def _psnr(sq_err: float, count: int) -> float:
     if count == 0:
         return float("nan")
-    mse = sq_err / count
-    return float("inf") if mse == 0.0 else float(10.0 * np.log10(1.0 / mse))
+    return psnr_from_mse(sq_err / count)
 
 
 def _matrices(poses) -> np.ndarray:

@@ -264,9 +264,9 @@ def downsample_classes(cls: np.ndarray, num_classes: int, width: int, height: in
 def render_error(world: WorldModel, test: TestStates, point: Point) -> dict:
     """PSNR / SSIM / mask IoU of the env's renderer (:class:`SceneRenderer`, the point's settings, full
     render) at the test states' poses and cameras against the ground truth (area-downsampled to the point's
-    size). PSNR and SSIM are ``dsg-eval``'s (:mod:`train_world.eval.evaluate`), averaged over all views; mask
+    size). PSNR and SSIM are ``dsg-eval``'s (:mod:`train_world.eval.metrics`), averaged over all views; mask
     IoU per object accumulated over a state's views, averaged over objects, then over states."""
-    from train_world.eval.evaluate import _psnr, _ssim, mask_iou
+    from train_world.eval.metrics import mask_iou, psnr, ssim
 
     s = point.size
     Ks = test.Ks.copy()
@@ -284,8 +284,8 @@ def render_error(world: WorldModel, test: TestStates, point: Point) -> dict:
             gt = area_downsample(test.images[state][v], s, s)
             gtc.append(downsample_classes(test.classes[state][v], k + 1, s, s))
             ours = out.rgb[v].astype(np.float32) / 255.0
-            psnrs.append(_psnr(ours, gt))
-            ssims.append(_ssim(ours, gt))
+            psnrs.append(psnr(ours, gt))
+            ssims.append(ssim(ours, gt))
         # stacking the views accumulates intersections and unions over them (dsg-eval's object IoU)
         vals = [v for v in mask_iou(out.mask, np.stack(gtc), range(1, k + 1)).values() if v is not None]
         if vals:

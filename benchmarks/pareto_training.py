@@ -47,7 +47,7 @@ def training_curve(capture: str | Path, preset: str, minutes: float, *, downscal
     """Train ``preset`` on ``capture`` for at most ``minutes`` of training time; returns the curve
     ``{"preset", "iterations", "points": [{"step", "train_seconds", "psnr", "ssim", "mask_iou", ...}]}``."""
     from dsg_gym.world_model import WorldModel
-    from train_world.dual_state.cli import scaled_preset
+    from train_world.single_state.presets import scaled_preset
     from train_world.dual_state.trainer import DualConfig, DualTrainer
     from train_world.single_state.presets import TrainConfig
 
@@ -104,7 +104,7 @@ def training_curve(capture: str | Path, preset: str, minutes: float, *, downscal
 def warm_up(capture: str | Path, downscale: int, seed: int = 0) -> float:
     """A throwaway 3-step run, so that numba's compilation (or cache loading) of the training kernels is not
     counted in the first preset's clock. Returns its seconds."""
-    from train_world.dual_state.cli import scaled_preset
+    from train_world.single_state.presets import scaled_preset
     from train_world.dual_state.trainer import DualConfig, DualTrainer
     from train_world.single_state.presets import TrainConfig
 

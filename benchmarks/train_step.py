@@ -84,10 +84,10 @@ def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | No
     import numba
     import torch
 
-    from train_world.dual_state.cli import _parser as dual_parser
-    from train_world.dual_state.cli import config_from_args
+    from train_world.cli.train import two_state_parser as dual_parser
+    from train_world.cli.train import two_state_config as config_from_args
     from train_world.dual_state.trainer import DualTrainer
-    from train_world.synth.cli import main as synth_main
+    from train_world.cli.synth import main as synth_main
 
     given = capture
     with tempfile.TemporaryDirectory() as tmp:

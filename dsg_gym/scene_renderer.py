@@ -40,9 +40,7 @@ class RenderSettings:
 
     The defaults are the point ``python -m benchmarks.pareto`` recommends for the env: the fastest setting
     on the step-time/PSNR Pareto front within 0.1 dB of the most accurate one on the bundled world
-    (2/255 and 1e-3 on the session-13 world: 1.12x faster steps for 0.07 dB; 3/255 on the world before it).
-    ``SceneRenderer``'s own defaults stay at
-    the 3DGS values the training renderer uses.
+    (docs/benchmarks.md). ``SceneRenderer``'s own defaults stay at the 3DGS values the training renderer uses.
     """
 
     alpha_min: float = 2.0 / 255.0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from train_world.synth.cli import main as synth_main
+from train_world.cli.synth import main as synth_main
 
 
 def tiny_capture(folder: Path, scene: str = "two_blocks", *, size: int = 32, views: int = 16,

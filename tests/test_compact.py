@@ -15,16 +15,16 @@ from dsg_gym.gaussians import GaussianSet
 from dsg_gym.splat import rasterize
 from dsg_gym.world import load_world
 from dsg_gym.world_model import Cameras, TableBounds, WorldModel
+from train_world.capture.ply_import import world_from_model
+from train_world.cli.compact import main
+from train_world.compact.checks import SelfCheck
 from train_world.compact.compaction import (
     CompactConfig,
     compact_world,
     hull_vertices,
-    main,
     sh_change_bound,
     truncate_sh,
 )
-from train_world.compact.checks import SelfCheck
-from train_world.capture.ply_import import world_from_model
 from train_world.compact.importance import gaussian_importance, look_at, scene_cameras, view_colors
 from train_world.world_writer import encode_world, write_world
 

@@ -8,8 +8,8 @@ import pytest
 from _captures import tiny_capture
 import torch
 
-from train_world.dual_state.cli import _parser as dual_parser
-from train_world.dual_state.cli import config_from_args
+from train_world.cli.train import two_state_parser as dual_parser
+from train_world.cli.train import two_state_config as config_from_args
 from train_world.single_state.data import load_training_data
 from train_world.single_state.field import SegmentedField
 from train_world.single_state.losses import depth_loss

@@ -18,8 +18,8 @@ from train_world.dual_state.merge import co_paste_background, co_prune_masks, ob
 from train_world.dual_state.pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
 from train_world.dual_state.transfer import ObjectTransfer, gaussian_transforms, relative_transforms
 from train_world.eval.evaluate import evaluate
-from train_world.eval.evaluate import main as ev_main
-from train_world.single_state import cli as recon_cli
+from train_world.cli.eval import main as ev_main
+from train_world.cli import train as recon_cli
 from train_world.single_state.field import Classifier, SegmentedField
 
 
@@ -327,11 +327,11 @@ def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
 
 
 def _dual_cli(tiny, out, *extra):
-    from train_world.dual_state import cli as dual_cli
+    from train_world.cli import train as dual_cli
 
     args = [str(tiny), "--out", str(out), "--preset", "quick", "--iterations", "60", "--prune-every", "10",
             "--quiet", *extra]
-    assert dual_cli.main(args) == 0
+    assert dual_cli.main_two_state(args) == 0
     return load_world(out)
 
 
@@ -343,12 +343,12 @@ def _same_world(a, b):
 
 
 def test_dual_resume_and_branch_reproduce_uninterrupted_runs(tiny, tmp_path):
-    from train_world.dual_state import cli as dual_cli
+    from train_world.cli import train as dual_cli
     from train_world.dual_state.trainer import DualTrainer
 
     full = _dual_cli(tiny, tmp_path / "full.dsgw")
     # killed at step 45 (past the joint start 30, checkpoint every 10 at this length), then --resume
-    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(
+    cfg = dual_cli.two_state_config(dual_cli.two_state_parser().parse_args(
         [str(tiny), "--out", "x", "--preset", "quick", "--iterations", "60", "--prune-every", "10"]))
     tr = DualTrainer(tiny, cfg, checkpoint=tmp_path / "res.dsgw.ckpt")
     tr.train(progress=False, stop_after=45)
@@ -358,27 +358,27 @@ def test_dual_resume_and_branch_reproduce_uninterrupted_runs(tiny, tmp_path):
     # the ablation B+C shares its reconstruction phase with B+C+P: branching from a checkpoint taken at the
     # joint start gives the same world as a separate B+C run
     ck = tmp_path / "recon.ckpt"
-    assert dual_cli.main([str(tiny), "--out", str(tmp_path / "r.dsgw"), "--preset", "quick", "--iterations",
+    assert dual_cli.main_two_state([str(tiny), "--out", str(tmp_path / "r.dsgw"), "--preset", "quick", "--iterations",
                           "60", "--prune-every", "10", "--quiet", "--stop-at-joint", "--checkpoint", str(ck)]) == 0
     assert not (tmp_path / "r.dsgw").exists()
     sep = _dual_cli(tiny, tmp_path / "bc.dsgw", "--no-pseudo")
     br = _dual_cli(tiny, tmp_path / "bc_branch.dsgw", "--no-pseudo", "--branch-from", str(ck))
     _same_world(sep, br)
     # a checkpoint past the joint start, or from other options, cannot be branched from
-    assert dual_cli.main([str(tiny), "--out", str(tmp_path / "z.dsgw"), "--preset", "quick", "--iterations",
+    assert dual_cli.main_two_state([str(tiny), "--out", str(tmp_path / "z.dsgw"), "--preset", "quick", "--iterations",
                           "60", "--prune-every", "10", "--quiet", "--branch-from",
                           str(tmp_path / "full.dsgw.ckpt")]) == 2
-    assert dual_cli.main([str(tiny), "--out", str(tmp_path / "z.dsgw"), "--preset", "quick", "--iterations",
+    assert dual_cli.main_two_state([str(tiny), "--out", str(tmp_path / "z.dsgw"), "--preset", "quick", "--iterations",
                           "60", "--prune-every", "10", "--tau", "0.05", "--quiet", "--branch-from",
                           str(ck)]) == 2
 
 
 def test_dual_non_finite_gradient_stops_before_the_fields_change(tiny, tmp_path):
-    from train_world.dual_state import cli as dual_cli
+    from train_world.cli import train as dual_cli
     from train_world.dual_state.trainer import DualTrainer
     from train_world.single_state.trainer import TrainingDiverged
 
-    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(
+    cfg = dual_cli.two_state_config(dual_cli.two_state_parser().parse_args(
         [str(tiny), "--out", "x", "--preset", "quick", "--iterations", "40"]))
     tr = DualTrainer(tiny, cfg)
     tr.train(progress=False, stop_after=25)  # into the joint phase
@@ -394,7 +394,7 @@ def test_dual_non_finite_gradient_stops_before_the_fields_change(tiny, tmp_path)
 def test_two_state_training_has_its_own_step_count_and_field_cap():
     import dataclasses
 
-    from train_world.dual_state import cli as dual_cli
+    from train_world.cli import train as dual_cli
     from train_world.single_state.presets import get_preset
 
     p = get_preset("default")
@@ -404,12 +404,12 @@ def test_two_state_training_has_its_own_step_count_and_field_cap():
     assert (d.iterations, d.max_gaussians) == (p.dual_iterations, p.dual_max_gaussians)
     f = p.dual_iterations / p.iterations  # the whole schedule follows the step count
     assert (d.densify_until, d.reset_every) == (round(p.densify_until * f), round(p.reset_every * f))
-    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(["cap", "--out", "x", "--holdout-every", "8"]))
+    cfg = dual_cli.two_state_config(dual_cli.two_state_parser().parse_args(["cap", "--out", "x", "--holdout-every", "8"]))
     assert cfg.base.preset == d  # what dsg-train on two states uses by default
     # the joint phase starts at the preset's fraction unless --joint-from says otherwise
     assert cfg.joint_from == p.dual_joint_from and 0.5 <= p.dual_joint_from < 1
     assert round(cfg.joint_from * d.iterations) == round(p.dual_iterations * p.dual_joint_from)
-    cfg = dual_cli.config_from_args(dual_cli._parser().parse_args(["cap", "--out", "x", "--holdout-every", "8",
+    cfg = dual_cli.two_state_config(dual_cli.two_state_parser().parse_args(["cap", "--out", "x", "--holdout-every", "8",
                                                                    "--joint-from", "0.25"]))
     assert cfg.joint_from == 0.25
     assert get_preset("paper").dual_joint_from == 0.5  # DSG-World's 10k + 10k
@@ -467,7 +467,9 @@ def test_knn_completion_fills_the_hole_not_the_table_seen_around_the_object():
 
 
 def test_two_state_training_holds_out_views_only_when_the_capture_has_no_test_states(tiny, tmp_path):
-    from train_world.dual_state.cli import _parser, config_from_args, default_holdout_every
+    from train_world.cli.train import two_state_config as config_from_args
+    from train_world.cli.train import two_state_parser as _parser
+    from train_world.dual_state.views import default_holdout_every
 
     bare = tiny_capture(tmp_path, views=8, test_views=0, test_states=0)
     assert default_holdout_every(tiny) == 0 and default_holdout_every(bare) == 8

@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from train_world.cli import eval as eval_cli
+from train_world.cli import train as cli
+from train_world.cli.synth import main as synth_main
 from train_world.eval import evaluate as ev
-from train_world.single_state import cli
-from train_world.synth.cli import main as synth_main
+from train_world.eval.metrics import mask_iou, psnr, ssim
 
 LEGO = Path(__file__).resolve().parents[2] / "shared" / "external" / "nerf_synthetic_lego"
 
@@ -68,7 +70,7 @@ def trained(tmp_path_factory):
 def test_report_of_heldout_views(trained):
     cap, world, root = trained
     out = root / "report"
-    assert ev.main([str(world), str(cap), "--out", str(out)]) == 0
+    assert eval_cli.main([str(world), str(cap), "--out", str(out)]) == 0
     r = json.loads((out / "report.json").read_text())
     assert [v["index"] for v in r["per_view"]] == [0, 4, 8]  # every 4th view of state1 was held out
     assert set(r["mean"]) == {"psnr", "ssim", "mask_iou"}
@@ -100,14 +102,14 @@ def test_novel_state_uses_its_object_poses(trained):
 def test_metric_definitions():
     rng = np.random.default_rng(0)
     a = rng.random((16, 16, 3))
-    assert ev._psnr(a, a) == float("inf")
-    assert ev._psnr(a, np.clip(a + 0.1, 0, 1)) < 30
-    assert ev._ssim(a.astype(np.float32), a.astype(np.float32)) == pytest.approx(1.0)
+    assert psnr(a, a) == float("inf")
+    assert psnr(a, np.clip(a + 0.1, 0, 1)) < 30
+    assert ssim(a.astype(np.float32), a.astype(np.float32)) == pytest.approx(1.0)
     gt = np.zeros((4, 4), np.int64)
     gt[:2, :2] = 1
     pred = np.zeros((4, 4), np.int64)
     pred[:2, :3] = 1
-    ious = ev.mask_iou(pred, gt, range(1, 3))
+    ious = mask_iou(pred, gt, range(1, 3))
     assert ious[1] == pytest.approx(4 / 6) and ious[2] is None
 
 
@@ -115,24 +117,24 @@ def test_bad_world_is_refused(trained, tmp_path, capsys):
     cap, world, _ = trained
     bad = tmp_path / "bad.dsgw"
     bad.write_bytes(world.read_bytes()[:-10])
-    assert ev.main([str(bad), str(cap), "--out", str(tmp_path / "o")]) == 2
+    assert eval_cli.main([str(bad), str(cap), "--out", str(tmp_path / "o")]) == 2
     assert "truncated" in capsys.readouterr().err
     assert not (tmp_path / "o" / "report.json").exists()
 
 
 def test_default_views_follow_what_the_world_held_out(trained, tmp_path, monkeypatch):
     cap, world, _ = trained
-    assert ev._default_state(world, cap) is None  # a single-state world with held-out views: those
+    assert ev.default_state(world, cap) is None  # a single-state world with held-out views: those
     meta = {"heldout_views": []}
     monkeypatch.setattr(ev, "load_world", lambda p: type("W", (), {"metadata": meta})())
-    assert ev._default_state(world, cap) == "test"  # none held out: the capture's test states
+    assert ev.default_state(world, cap) == "test"  # none held out: the capture's test states
     blender = tmp_path / "blender"
     blender.mkdir()
     (blender / "transforms_train.json").write_text("{}")
-    assert ev._default_state(world, blender) is None  # NeRF-Blender data: its test split, no capture to read
+    assert ev.default_state(world, blender) is None  # NeRF-Blender data: its test split, no capture to read
     meta["dual"] = {}
     meta["heldout_views"] = [0]
-    assert ev._default_state(world, cap) == "test"  # a two-state world: always the test states
+    assert ev.default_state(world, cap) == "test"  # a two-state world: always the test states
 
 
 @pytest.mark.skipif(not LEGO.is_dir(), reason="shared NeRF-Blender lego data not present")

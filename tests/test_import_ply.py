@@ -17,7 +17,8 @@ from dsg_gym.io import PlyFormatError, read_ply, write_ply
 from dsg_gym.scene_renderer import SceneRenderer
 from dsg_gym.world import load_world
 from dsg_gym.world_model import WorldModel
-from train_world.capture.ply_import import main, world_from_ply
+from train_world.capture.ply_import import world_from_ply
+from train_world.cli.import_ply import main
 from train_world.world_writer import write_world
 
 EXTERNAL = Path(__file__).resolve().parents[2] / "shared" / "external"

@@ -14,7 +14,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from train_world.capture import importers  # noqa: E402
+from train_world.cli import importer as importer_cli  # noqa: E402
 from train_world.capture import CaptureError, load_capture  # noqa: E402
 from train_world.capture.importers import import_llff, import_transforms, llff_to_opengl_c2w  # noqa: E402
 from train_world.synth.generate import GenerateConfig, generate_scene  # noqa: E402
@@ -107,7 +107,7 @@ def test_llff_round_trip_reproduces_cameras(synth, synth_llff, tmp_path):
 
 def test_real_llff_capture(small_head, tmp_path):
     out = tmp_path / "head_out"
-    assert importers.main(["llff", str(small_head), "--out", str(out), "--factor", "8"]) == 0
+    assert importer_cli.main(["llff", str(small_head), "--out", str(out), "--factor", "8"]) == 0
     cap = load_capture(out)
     v = cap.states["state1"]
     pb = np.load(small_head / "poses_bounds.npy")
@@ -130,7 +130,7 @@ def test_real_llff_capture(small_head, tmp_path):
         p = vm[i, :3, :3] @ X + vm[i, :3, 3]
         uv = (K[i] @ p)[:2] / p[2]
         assert p[2] > 0 and m[i, int(uv[1]), int(uv[0])] == 1
-    assert importers.main(["llff", str(small_head), "--out", str(out)]) == 2  # exists: refuses
+    assert importer_cli.main(["llff", str(small_head), "--out", str(out)]) == 2  # exists: refuses
 
 
 def test_llff_errors(synth_llff, tmp_path):
@@ -160,7 +160,7 @@ def test_llff_missing_poses(tmp_path):
 
 def test_import_transforms(synth, tmp_path):
     out = tmp_path / "t"
-    assert importers.main(["transforms", str(synth / "state1"), "--out", str(out), "--threshold", "0"]) == 0
+    assert importer_cli.main(["transforms", str(synth / "state1"), "--out", str(out), "--threshold", "0"]) == 0
     got = load_capture(out).states["state1"]
     want = load_capture(synth, states=["state1"]).states["state1"]
     np.testing.assert_allclose(got.viewmats.numpy(), want.viewmats.numpy(), atol=1e-6)

@@ -12,7 +12,7 @@ import torch
 from dsg_gym.world import load_world
 from dsg_gym.world_model import WorldModel
 from train_world.eval.evaluate import render_gaussians
-from train_world.single_state import cli
+from train_world.cli import train as cli
 from train_world.single_state.checkpoint import load_checkpoint
 from train_world.single_state.data import load_training_data
 from train_world.single_state.field import SegmentedField, filter3d_variance

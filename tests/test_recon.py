@@ -11,7 +11,7 @@ from _captures import tiny_capture
 import torch
 
 from dsg_gym.world import load_world
-from train_world.single_state import cli
+from train_world.cli import train as cli
 from train_world.single_state.checkpoint import load_checkpoint
 from train_world.single_state.data import load_training_data
 from train_world.single_state.field import SegmentedField

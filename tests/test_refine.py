@@ -9,8 +9,9 @@ import pytest
 
 from dsg_gym.world import load_world
 from tests._captures import tiny_capture
-from train_world.dual_state import cli as dual_cli
-from train_world.dual_state.refine import RefineConfig, StateViews, main as refine_main, refine_world, training_views_of
+from train_world.cli import train as dual_cli
+from train_world.cli.refine import main as refine_main
+from train_world.dual_state.refine import RefineConfig, StateViews, refine_world, training_views_of
 from train_world.eval.evaluate import render_gaussians
 
 
@@ -19,7 +20,7 @@ def unrefined(tmp_path_factory):
     d = tmp_path_factory.mktemp("refine")
     cap = tiny_capture(d / "cap", test_views=2, test_states=1)
     out = d / "w.dsgw"
-    assert dual_cli.main([str(cap), "--out", str(out), "--preset", "quick", "--iterations", "60",
+    assert dual_cli.main_two_state([str(cap), "--out", str(out), "--preset", "quick", "--iterations", "60",
                           "--prune-every", "10", "--refine-steps", "0", "--quiet"]) == 0
     return cap, out
 
@@ -97,9 +98,9 @@ def test_refinement_rejects_bad_input_and_leaves_the_world_alone(unrefined):
 
 def test_dsg_train_refines_like_the_standalone_command(unrefined, tmp_path, capsys):
     cap, path = unrefined
-    # dsg-train with refinement = the same training without it, then `python -m train_world.dual_state.refine`
+    # dsg-train with refinement = the same training without it, then `python -m train_world.cli.refine`
     inproc = tmp_path / "in.dsgw"
-    assert dual_cli.main([str(cap), "--out", str(inproc), "--preset", "quick", "--iterations", "60",
+    assert dual_cli.main_two_state([str(cap), "--out", str(inproc), "--preset", "quick", "--iterations", "60",
                           "--prune-every", "10", "--refine-steps", "25", "--quiet"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["refine_steps"] == 25 and summary["refine_seconds"] > 0
@@ -124,13 +125,13 @@ def test_refinement_steps_do_not_block_resuming_or_branching(unrefined, tmp_path
     cap, _ = unrefined
     ck = tmp_path / "recon.ckpt"
     common = [str(cap), "--preset", "quick", "--iterations", "60", "--prune-every", "10", "--quiet"]
-    assert dual_cli.main([*common, "--out", str(tmp_path / "r.dsgw"), "--stop-at-joint", "--checkpoint", str(ck),
+    assert dual_cli.main_two_state([*common, "--out", str(tmp_path / "r.dsgw"), "--stop-at-joint", "--checkpoint", str(ck),
                           "--refine-steps", "0"]) == 0
     # the checkpoint was made by a run that would not refine; a refining run still branches from it
-    assert dual_cli.main([*common, "--out", str(tmp_path / "b.dsgw"), "--branch-from", str(ck),
+    assert dual_cli.main_two_state([*common, "--out", str(tmp_path / "b.dsgw"), "--branch-from", str(ck),
                           "--refine-steps", "5"]) == 0
     assert load_world(tmp_path / "b.dsgw").metadata["refine"]["steps"] == 5
-    assert dual_cli.main([*common, "--out", str(tmp_path / "c.dsgw"), "--refine-steps", "-3"]) == 2
+    assert dual_cli.main_two_state([*common, "--out", str(tmp_path / "c.dsgw"), "--refine-steps", "-3"]) == 2
 
 
 def test_presets_refine_by_default_except_the_paper_s():

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from dsg_gym.world import load_world
-from train_world.eval.evaluate import main as ev_main
-from train_world.suite.runner import main as suite_main
+from train_world.cli.eval import main as ev_main
+from train_world.cli.suite import main as suite_main
 
 
 def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):

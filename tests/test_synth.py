@@ -15,7 +15,7 @@ import pytest  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from train_world.capture import load_capture  # noqa: E402
-from train_world.synth import cli  # noqa: E402
+from train_world.cli import synth as cli  # noqa: E402
 from train_world.synth.build import build_scene, set_object_poses  # noqa: E402
 from train_world.synth.cameras import look_at_opengl, orbit_c2w  # noqa: E402
 from train_world.synth.generate import GENERATOR_VERSION, GenerateConfig, generate_scene, rng_for  # noqa: E402

@@ -9,7 +9,7 @@ import pytest
 from _captures import tiny_capture
 
 from benchmarks.train_step import main
-from train_world.dual_state import cli as dual_cli
+from train_world.cli import train as dual_cli
 
 
 def _check(r: dict, renders_joint: float) -> None:
@@ -31,7 +31,7 @@ def test_train_step_benchmark_from_initial_fields_and_from_a_checkpoint(tmp_path
     # trained fields: a checkpoint at the joint phase's start, as dsg-suite's recon.ckpt
     cap = tiny_capture(tmp_path, size=24, views=8)
     ckpt = tmp_path / "recon.ckpt"
-    assert dual_cli.main([str(cap), "--out", str(tmp_path / "w.dsgw"), "--preset", "quick", "--iterations", "20",
+    assert dual_cli.main_two_state([str(cap), "--out", str(tmp_path / "w.dsgw"), "--preset", "quick", "--iterations", "20",
                           "--stop-at-joint", "--checkpoint", str(ckpt), "--quiet"]) == 0
     out2 = tmp_path / "step2.json"
     assert main(["--out", str(out2), "--quick", "--iterations", "20", "--capture", str(cap), "--checkpoint",

@@ -5,20 +5,16 @@ each reads ``OMP_WAIT_POLICY`` once, when it loads. The two pools see different 
 
 * torch runs hundreds of small parallel operations per training step (every op on more than 32k elements:
   the render's activations and transforms, the losses, their backward, Adam). With sleeping workers each one
-  pays a futex wake-up, about 50 us on this virtual machine (``x.min(); x * 2`` on 60k floats: 104 us with a
-  sleeping worker, 10 us with a spinning one, 13 us on one thread; idle, session 13).
+  pays a futex wake-up, several times the cost of the operation itself.
 * numba runs a few dozen long kernels per step (projection, compositing), where a wake-up is noise.
 
 So by default (``OMP_WAIT_POLICY`` unset) torch's pool keeps libgomp's default policy (spin a while, then
-sleep) and numba's pool sleeps (``PASSIVE``). Measured with ``python -m benchmarks.omp_waiting`` on
-``two_blocks``' step-1500 checkpoint (idle 2-core machine, 40 steps, two rounds): a joint step took 216-229 ms
-this way against 256-280 ms with both pools passive (0.84x), a reconstruction step 103-109 against 107-119 ms.
-Spinning costs dearly when another process competes for the cores (two trainings at once whose pools spun with
-``GOMP_SPINCOUNT=20000``: 2.18 and 2.20 s per joint step, two passive ones 1.17 and 1.18 s; README, "Time"), so when other processes
-already keep the CPUs busy as this process starts (over half a core, sampled from ``/proc/stat`` for 0.15 s)
-both pools sleep. Two trainings started 5 s apart: the first spins and the second, seeing it, sleeps (236 and
-401 ms per joint step), against 314 and 430 ms when both sleep. A policy in the environment always wins, for
-both pools.
+sleep) and numba's pool sleeps (``PASSIVE``): joint steps are faster than with both pools passive
+(``python -m benchmarks.omp_waiting``; figures in docs/benchmarks.md). Spinning costs dearly when another
+process competes for the cores, so when other processes already keep the CPUs busy as this process starts
+(over half a core, sampled from ``/proc/stat`` for 0.15 s) both pools sleep: of two trainings started a few
+seconds apart, the first spins and the second, seeing it, sleeps. A policy in the environment always wins,
+for both pools.
 
 Waiting changes timing only: results are the same bits either way. The environment is left as it was found
 (numba's pool is loaded here, while the variable says ``PASSIVE``), so child processes decide for themselves.

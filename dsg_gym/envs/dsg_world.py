@@ -28,7 +28,7 @@ _ASSETS = Path(__file__).resolve().parents[2] / "assets" / "worlds"
 #: README, "The bundled world")
 DEFAULT_WORLD = _ASSETS / "two_blocks_dsg.dsgworld"
 #: the geometry world of the same scene (Gaussians sampled on the MuJoCo geoms: the ideal reconstruction;
-#: ``python -m train_world.synth.geom_world``), used by tests and as a reference
+#: ``python -m train_world.cli.geom_world``), used by tests and as a reference
 GEOMETRY_WORLD = _ASSETS / "default_geom.dsgworld"
 _REBUILD = "see README, 'The bundled world', for the commands that rebuild it"
 OBS_KEYS = ("rgb", "mask", "depth", "poses")

@@ -15,7 +15,7 @@ from _captures import tiny_capture
 
 from dsg_gym.world import load_world
 from train_world.capture import format as data_format
-from train_world.single_state import cli
+from train_world.cli import train as cli
 from train_world.single_state.checkpoint import CheckpointError, load_checkpoint
 from train_world.single_state.data import load_training_data
 from train_world.single_state.presets import TrainConfig, get_preset

@@ -1,6 +1,14 @@
 """Captures on disk: the layout (:mod:`.format`), camera conventions (:mod:`.cameras`) and loading
 (:mod:`.loader`). See README "Capture format on disk"."""
 
-from train_world.capture.loader import Capture, CaptureError, ObjectInfo, Views, load_blender, load_capture, load_views
+from train_world.capture.loader import (
+    Capture,
+    CaptureError,
+    ObjectInfo,
+    Views,
+    load_blender,
+    load_capture,
+    load_views,
+)
 
 __all__ = ["Capture", "CaptureError", "ObjectInfo", "Views", "load_blender", "load_capture", "load_views"]

@@ -21,10 +21,8 @@ width; the classifier gets a zero row for a new object. The world file is writte
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
-import sys
 import warnings
 from pathlib import Path
 from types import MappingProxyType
@@ -38,7 +36,7 @@ from dsg_gym.io import read_ply
 from dsg_gym.world import Cameras, World, WorldObject, load_world
 from dsg_gym.world_model import WorldModel
 
-__all__ = ["world_from_ply", "orbit_cameras", "world_from_model", "main", "ROLES"]
+__all__ = ["world_from_ply", "orbit_cameras", "world_from_model", "ROLES"]
 
 ROLES = ("background", "object")
 
@@ -210,48 +208,3 @@ def world_from_ply(ply_path, base=None, role: str = "background", *, object_name
         metadata=MappingProxyType(meta),
         units=b.units,
     )
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="dsg-import-ply",
-        description="Import a standard 3DGS PLY (Inria layout) as a world's background or as a new object "
-        "and write a world file. DSGWorld-v0 needs at least one object: a background-only world (no --base) "
-        "renders but is not an env; add an object with --as object --base WORLD.",
-    )
-    ap.add_argument("ply", help="3DGS PLY file")
-    ap.add_argument("--out", required=True, help="world file to write (.dsgworld)")
-    ap.add_argument("--as", dest="role", choices=ROLES, default="background",
-                    help="background (default): replace the base's background (or make a world of it); "
-                    "object: add it as a new object (its frame = the PLY frame, identity pose)")
-    ap.add_argument("--object-name", default=None,
-                    help="name of the new object (default: the PLY's file stem)")
-    ap.add_argument("--base", default=None, help="world file to start from (objects, states, cameras, table)")
-    ap.add_argument("--for-env", action="store_true",
-                    help="refuse to write a world without objects (DSGWorld-v0 needs at least one)")
-    ap.add_argument("--views", type=int, default=16, help="orbit cameras when there is no base (default 16)")
-    ap.add_argument("--width", type=int, default=256, help="orbit camera image width (default 256)")
-    ap.add_argument("--height", type=int, default=256, help="orbit camera image height (default 256)")
-    args = ap.parse_args(argv)
-    if args.object_name is not None and args.role != "object":
-        ap.error("--object-name needs --as object")
-    if min(args.views, args.width, args.height) < 1:
-        ap.error("--views, --width and --height must be positive")
-    from train_world.world_writer import write_world
-
-    try:
-        world = world_from_ply(args.ply, args.base, args.role, object_name=args.object_name,
-                               num_views=args.views, width=args.width, height=args.height,
-                               for_env=args.for_env)
-        out = write_world(args.out, world)
-    except (ValueError, OSError) as e:
-        ap.error(str(e))
-    print(out)
-    if world.num_objects == 0:
-        print("note: this world has no objects, so DSGWorld-v0 cannot use it; add one with "
-              f"`dsg-import-ply OBJECT.ply --as object --base {out} --out WORLD`", file=sys.stderr)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

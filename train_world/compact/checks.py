@@ -11,7 +11,6 @@ Both return ``{"ok", "psnr_drop", ...}`` for a candidate ``(background, [objects
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -21,6 +20,7 @@ import numpy as np
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.world import World, WorldObject
 from train_world.compact.importance import SceneCameras
+from train_world.eval.metrics import psnr_from_mse
 
 __all__ = ["CaptureCheck", "SelfCheck", "psnr", "with_parts"]
 
@@ -134,4 +134,5 @@ def with_parts(world: World, bg: GaussianSet, objs: list[GaussianSet], meta: dic
 
 
 def psnr(mse: float) -> float:
-    return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
+    """PSNR of ``mse``, at most 100 dB (finite in the JSON report)."""
+    return min(psnr_from_mse(mse), 100.0)

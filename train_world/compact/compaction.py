@@ -49,11 +49,8 @@ times) is printed as JSON and, with ``--report``, written to a file.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import math
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -64,11 +61,11 @@ from typing import Any
 import numpy as np
 
 from dsg_gym.gaussians import GaussianSet
-from dsg_gym.world import World, load_world
+from dsg_gym.world import World
 from train_world.compact.checks import CaptureCheck, SelfCheck, with_parts
 from train_world.compact.importance import SceneCameras, gaussian_importance, scene_cameras, sphere_cameras
 
-__all__ = ["CompactConfig", "compact_world", "hull_vertices", "main", "sh_change_bound", "truncate_sh"]
+__all__ = ["CompactConfig", "compact_world", "hull_vertices", "sh_change_bound", "truncate_sh"]
 
 _BAND_NORM2 = np.array([(2 * b + 1) / (4 * math.pi) for b in range(4)])  # sum_m Y_lm^2 per band
 
@@ -508,79 +505,3 @@ def _fmt(res: dict[str, Any]) -> str:
     if res.get("test_psnr_drop") is not None:
         s += f", measured on the test states {res['test_psnr_drop']:.3f}"
     return s + f"), self PSNR {res['self_psnr']:.2f} dB"
-
-
-# --------------------------------------------------------------------------------------------- CLI
-_OPTIONS = (  # (CompactConfig field, type, help); each becomes --field-name
-    ("max_psnr_drop", float, "PSNR budget in dB"),
-    ("reference_psnr", float, "without --capture: the world's assumed PSNR against ground truth (dB)"),
-    ("fraction", float, "keep this fraction of the Gaussians (no budget search)"),
-    ("min_weight", float, "invisible below this accumulated weight (pixels) in every plausible view"),
-    ("sh_tolerance", float, "largest colour change allowed when dropping SH bands"),
-    ("rings", int, "orbit rings of plausible cameras"),
-    ("per_ring", int, "cameras per orbit ring"),
-    ("object_views", int, "sphere cameras per object"),
-    ("step", float, "fraction of the Gaussians removed per round"),
-    ("min_fraction", float, "never keep fewer than this fraction"),
-    ("neighbours", int, "a removed Gaussian protects this many nearest neighbours for the rest of its round"),
-    ("refit_steps", int, "Adam steps of each refit of the survivors to the original renders (0: no refit)"),
-    ("refit_cycles", int, "how many times to refit (each followed by more pruning, except the last)"),
-    ("validation_views", int, "plausible cameras used for the self-consistency check"),
-    ("bisect_steps", int, "bisection steps in the round that breaks the budget"),
-)
-
-
-def _parser() -> argparse.ArgumentParser:
-    d = CompactConfig()
-    p = argparse.ArgumentParser(
-        prog="dsg-compact",
-        description=__doc__.split("\n")[0].split(": ", 1)[1],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    p.add_argument("world", type=Path, help="world file to compact")
-    p.add_argument("--out", type=Path, required=True, help="compacted world file (written atomically)")
-    p.add_argument(
-        "--capture", type=Path, help="also measure the drop on this capture's test states (dsg-eval)"
-    )
-    for name, typ, text in _OPTIONS:
-        p.add_argument("--" + name.replace("_", "-"), type=typ, default=getattr(d, name), help=text)
-    p.add_argument("--report", type=Path, help="also write the JSON report here")
-    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    a = _parser().parse_args(argv)
-    try:
-        cfg = CompactConfig(**{name: getattr(a, name) for name, _, _ in _OPTIONS})
-        if not a.world.is_file():
-            raise ValueError(f"{a.world}: world file does not exist")
-        if a.capture is not None and not (a.capture / "scene.json").is_file():
-            raise ValueError(f"{a.capture}: not a capture folder (no scene.json)")
-        world = load_world(a.world)
-        log = None if a.quiet else (lambda msg: print(f"dsg-compact: {msg}", file=sys.stderr, flush=True))
-        out, report = compact_world(world, cfg, capture=a.capture, log=log)
-        from train_world.world_writer import write_world
-
-        write_world(a.out, out)
-    except (ValueError, OSError) as e:
-        print(f"dsg-compact: error: {e}", file=sys.stderr)
-        return 2
-    report = {
-        "input": str(a.world),
-        "output": str(a.out),
-        "bytes_before": a.world.stat().st_size,
-        "bytes_after": a.out.stat().st_size,
-        **report,
-    }
-    text = json.dumps(report, indent=2)
-    if a.report is not None:
-        from train_world.capture.format import atomic_write_bytes
-
-        atomic_write_bytes(a.report, (text + "\n").encode("utf-8"))
-    print(text)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -6,7 +6,12 @@ world), :mod:`.trainer` (``DualTrainer``, ``DualConfig``), :mod:`.cli` (``dsg-tr
 """
 
 from train_world.dual_state.losses import align_loss, pseudo_loss, semantic_divergence
-from train_world.dual_state.merge import co_paste_background, co_prune_masks, footprint_contains, object_footprints_xy
+from train_world.dual_state.merge import (
+    co_paste_background,
+    co_prune_masks,
+    footprint_contains,
+    object_footprints_xy,
+)
 from train_world.dual_state.pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
 from train_world.dual_state.transfer import gaussian_transforms, object_labels, relative_transforms
 

@@ -10,20 +10,18 @@ linearly to zero. Identity features, the classifier, the Gaussian count and the 
 
 Object Gaussians are optimised in their own frames (where the world stores them) and placed by each state's
 poses while rendering, so one copy of each object learns from the views of both states: that, and not the
-longer training, is the gain (session 16, ``four_mixed``: 1000 steps on both states +1.0 dB at the test states,
-on ``state1``'s views alone +0.06 dB). The step takes one 3-channel render, about 45 ms on two cores at 128 px.
+longer training, is the gain: refining on ``state1``'s views alone gains almost nothing at the test states
+(docs/training.md). A step takes one 3-channel render.
 
 Deterministic for a given world, views, configuration and thread count. ``dsg-train`` runs it after merging
-(the preset's ``dual_refine_steps``, ``--refine-steps``); ``python -m train_world.dual_state.refine`` refines a world
+(the preset's ``dual_refine_steps``, ``--refine-steps``); ``python -m train_world.cli.refine`` refines a world
 file that was written without it.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
-import sys
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -36,10 +34,9 @@ from tqdm import tqdm
 
 from dsg_gym.gaussians import GaussianSet, activate_opacity, activate_scale
 from dsg_gym.world import World, WorldObject
+from train_world.dual_state.transfer import ObjectTransfer
 from train_world.single_state.field import SegmentedField
 from train_world.single_state.losses import photometric_loss
-
-from train_world.dual_state.transfer import ObjectTransfer
 
 __all__ = ["RefineConfig", "StateViews", "refine_world", "training_views_of"]
 
@@ -206,44 +203,3 @@ def training_views_of(world: World, capture: str | Path) -> dict[str, StateViews
         keep = torch.tensor([i for i in range(len(v)) if i not in set(held.get(s, ()))], dtype=torch.int64)
         out[s] = StateViews(v.images[keep].contiguous(), v.viewmats[keep].contiguous(), v.Ks[keep].contiguous())
     return out
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m train_world.dual_state.refine",
-        description="Refine a two-state world on both states' training views (what dsg-train does after "
-        "merging since session 16; for worlds written without it). Writes a new world file.",
-    )
-    p.add_argument("world", type=Path, help="two-state world file (dsg-train on a capture with two states)")
-    p.add_argument("capture", type=Path, help="the capture it was trained on")
-    p.add_argument("--out", type=Path, required=True, help="world file to write")
-    p.add_argument("--steps", type=int, default=RefineConfig.steps, help=f"default {RefineConfig.steps}")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    import json
-
-    from dsg_gym.world import load_world
-    from train_world.world_writer import write_world
-
-    args = _parser().parse_args(argv)
-    try:
-        world = load_world(args.world)
-        if "refine" in world.metadata and world.metadata["refine"].get("steps", 0):
-            raise ValueError(f"{args.world} is refined already ({world.metadata['refine']['steps']} steps)")
-        refined, info = refine_world(world, training_views_of(world, args.capture),
-                                     RefineConfig(steps=args.steps, seed=args.seed), progress=not args.quiet)
-        write_world(args.out, refined)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"refine: error: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps({"world": str(args.out), **{k: info.get(k) for k in ("steps", "loss_first", "loss_last",
-                                                                          "seconds")}}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

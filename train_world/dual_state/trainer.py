@@ -29,6 +29,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from train_world.dual_state.losses import align_loss, pseudo_loss
+from train_world.dual_state.merge import co_prune_masks, object_footprints_xy, robust_object_points
+from train_world.dual_state.pseudo import footprint_radii, sample_pseudo_state
+from train_world.dual_state.transfer import (
+    ObjectTransfer,
+    gaussian_transforms,
+    object_labels,
+    relative_transforms,
+)
+from train_world.dual_state.world import MergeInputs, merged_world
 from train_world.single_state.checkpoint import (
     load_checkpoint,
     optimizer_from_tensors,
@@ -38,12 +48,13 @@ from train_world.single_state.checkpoint import (
 from train_world.single_state.data import TrainData, load_training_data
 from train_world.single_state.field import PARAM_NAMES, SegmentedField
 from train_world.single_state.presets import TrainConfig
-from train_world.single_state.trainer import Trainer, TrainingDiverged, check_gradients, make_optimizers, means_lr
-
-from train_world.dual_state.losses import align_loss, pseudo_loss
-from train_world.dual_state.merge import co_prune_masks, object_footprints_xy, robust_object_points
-from train_world.dual_state.pseudo import footprint_radii, sample_pseudo_state
-from train_world.dual_state.transfer import ObjectTransfer, gaussian_transforms, object_labels, relative_transforms
+from train_world.single_state.trainer import (
+    Trainer,
+    TrainingDiverged,
+    check_gradients,
+    make_optimizers,
+    means_lr,
+)
 
 __all__ = ["DualConfig", "DualTrainer", "joint_start_step"]
 
@@ -431,11 +442,36 @@ class DualTrainer:
         self.last_checkpoint_step = self.step
 
     # ------------------------------------------------------------------ result
+    def merge_inputs(self) -> MergeInputs:
+        """What merging needs of this run (:class:`.world.MergeInputs`)."""
+        return MergeInputs(
+            fields=tuple(self.fields),
+            labels=self.labels(),
+            P1=self.P1,
+            P2=self.P2,
+            T21=self.T21,
+            footprints=(self.footprints(self.P1), self.footprints(self.P2)),
+            data1=self.data1,
+            data2=self.data2,
+            background=self.t1.background,
+            poses=self.poses,
+            classifier_weight=self.classifier.weight.detach().numpy(),
+            classifier_bias=self.classifier.bias.detach().numpy(),
+            config=self.config.to_dict(),
+            ablation=self.config.ablation,
+            states=tuple(self.config.states),
+            footprint_margin=self.config.footprint_margin,
+            base_config=self.config.base.to_dict(),
+            extent=self.t1.extent,
+            step=self.step,
+            field_sizes=(self.t1.field.num, self.t2.field.num),
+            prune_log=list(self.prune_log[-50:]),
+            elapsed=self.elapsed,
+        )
+
     def world(self, extra_metadata: dict[str, Any] | None = None):
         """The merged world (:func:`.world.merged_world`)."""
-        from train_world.dual_state.world import merged_world
-
-        return merged_world(self, extra_metadata)
+        return merged_world(self.merge_inputs(), extra_metadata)
 
     def write_world(self, path: str | Path, extra_metadata: dict[str, Any] | None = None) -> Path:
         from train_world.world_writer import write_world

@@ -16,23 +16,57 @@ the co-pruning log.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
 from dsg_gym.sh_basis import rotate_sh
 from dsg_gym.world import Cameras, World
+from train_world.dual_state.merge import co_paste_background
+from train_world.dual_state.transfer import gaussian_transforms, relative_transforms
 from train_world.single_state.field import PARAM_NAMES, SegmentedField, rigid_transform_gaussians
 from train_world.world_writer import build_world
 
-from train_world.dual_state.merge import co_paste_background
-from train_world.dual_state.transfer import gaussian_transforms, relative_transforms
+__all__ = ["MergeInputs", "choose_object_sources", "merged_field", "merged_world"]
 
-if TYPE_CHECKING:
-    from train_world.dual_state.trainer import DualTrainer
 
-__all__ = ["choose_object_sources", "merged_field", "merged_world"]
+@dataclass(frozen=True)
+class MergeInputs:
+    """What merging needs of a finished two-state run (:meth:`DualTrainer.merge_inputs
+    <train_world.dual_state.trainer.DualTrainer.merge_inputs>` makes it).
+
+    ``fields``/``labels``: both fields and their per-Gaussian classes ``[N_i]``; ``P1``, ``P2``: object poses
+    ``[K, 4, 4]`` of the two training states; ``T21``: per-object motions state 2 -> state 1 ``[K, 4, 4]``;
+    ``footprints``: per state, each object's table-plane footprint points (or ``None``); ``data1``/``data2``:
+    the two states' training data; ``background``: the render background colour; ``poses``: every state's
+    object poses; ``classifier_weight``/``classifier_bias``: the shared classifier; ``config``: the two-state
+    options (``DualConfig.to_dict()``) with ``ablation``, ``states``, ``footprint_margin`` and ``base`` (the
+    single-state config dict); the rest is bookkeeping copied into the world's metadata."""
+
+    fields: tuple[SegmentedField, SegmentedField]
+    labels: tuple[torch.Tensor, torch.Tensor]
+    P1: np.ndarray
+    P2: np.ndarray
+    T21: Any
+    footprints: tuple[list, list]
+    data1: Any
+    data2: Any
+    background: Any
+    poses: dict
+    classifier_weight: np.ndarray
+    classifier_bias: np.ndarray
+    config: dict
+    ablation: str
+    states: tuple[str, str]
+    footprint_margin: float
+    base_config: dict
+    extent: float
+    step: int
+    field_sizes: tuple[int, int]
+    prune_log: list
+    elapsed: float
 
 
 def _rows(
@@ -55,22 +89,22 @@ def _concat(parts: list[dict[str, torch.Tensor]], rasterize_mode: str, eps2d: fl
 
 @torch.no_grad()
 def merged_field(
-    trainer: DualTrainer, sources: list[int] | None = None
+    run: MergeInputs, sources: list[int] | None = None
 ) -> tuple[SegmentedField, torch.Tensor, dict]:
     """The merged Gaussians in the frame of ``states[0]`` and their classes ``[N]``; ``sources[k]`` in
     ``{1, 2}`` picks the field object ``k`` comes from (default: all from ``G1``)."""
-    f1, f2 = trainer.fields
-    l1, l2 = trainer.labels()
-    k_obj = len(trainer.P1)
+    f1, f2 = run.fields
+    l1, l2 = run.labels
+    k_obj = len(run.P1)
     sources = sources or [1] * k_obj
-    fp1, fp2 = trainer.footprints(trainer.P1), trainer.footprints(trainer.P2)
+    fp1, fp2 = run.footprints
     bg1, bg2 = l1 == 0, l2 == 0
     keep1, keep2 = co_paste_background(
         f1.means.detach()[bg1].numpy(),
         f2.means.detach()[bg2].numpy(),
         fp1,
         fp2,
-        trainer.config.footprint_margin,
+        run.footprint_margin,
     )
     m1 = bg1.clone()
     m1[bg1] = torch.from_numpy(keep1)
@@ -80,7 +114,7 @@ def merged_field(
     classes = [torch.zeros(int(m1.sum()) + int(m2.sum()), dtype=torch.int64)]
     for k in range(k_obj):
         if sources[k] == 2:
-            part = _rows(f2, l2 == k + 1, trainer.T21[k])
+            part = _rows(f2, l2 == k + 1, run.T21[k])
         else:
             part = _rows(f1, l1 == k + 1)
         parts.append(part)
@@ -96,11 +130,11 @@ def merged_field(
 
 @torch.no_grad()
 def _scene_error(
-    trainer: DualTrainer, field: SegmentedField, classes: torch.Tensor, views_per_state: int
+    run: MergeInputs, field: SegmentedField, classes: torch.Tensor, views_per_state: int
 ) -> float:
     err = 0.0
-    for d, P in ((trainer.data1, trainer.P1), (trainer.data2, trainer.P2)):
-        T = gaussian_transforms(classes, relative_transforms(trainer.P1, P))
+    for d, P in ((run.data1, run.P1), (run.data2, run.P2)):
+        T = gaussian_transforms(classes, relative_transforms(run.P1, P))
         idx = np.linspace(0, len(d) - 1, min(views_per_state, len(d))).round().astype(int)
         for i in idx:
             out = field.render(
@@ -109,19 +143,19 @@ def _scene_error(
                 d.width,
                 d.height,
                 transform=T,
-                background=trainer.t1.background,
+                background=run.background,
                 with_features=False,
             )
             err += float((out.rgb[0].clamp(0, 1) - d.images[i]).abs().mean())
     return err
 
 
-def choose_object_sources(trainer: DualTrainer, views_per_state: int = 6) -> list[int]:
+def choose_object_sources(run: MergeInputs, views_per_state: int = 6) -> list[int]:
     """Per object, 1 or 2: the field whose copy gives the lower merged-scene error (greedy, module docstring)."""
-    l1, l2 = trainer.labels()
-    sources = [1] * len(trainer.P1)
-    field, classes, _ = merged_field(trainer, sources)
-    best = _scene_error(trainer, field, classes, views_per_state)
+    l1, l2 = run.labels
+    sources = [1] * len(run.P1)
+    field, classes, _ = merged_field(run, sources)
+    best = _scene_error(run, field, classes, views_per_state)
     for k in range(len(sources)):
         if int((l2 == k + 1).sum()) == 0:
             continue
@@ -129,28 +163,28 @@ def choose_object_sources(trainer: DualTrainer, views_per_state: int = 6) -> lis
         trial[k] = 2
         if int((l1 == k + 1).sum()) == 0:
             sources = trial
-            field, classes, _ = merged_field(trainer, sources)
-            best = _scene_error(trainer, field, classes, views_per_state)
+            field, classes, _ = merged_field(run, sources)
+            best = _scene_error(run, field, classes, views_per_state)
             continue
-        field, classes, _ = merged_field(trainer, trial)
-        e = _scene_error(trainer, field, classes, views_per_state)
+        field, classes, _ = merged_field(run, trial)
+        e = _scene_error(run, field, classes, views_per_state)
         if e < best:
             best, sources = e, trial
     return sources
 
 
-def merged_world(trainer: DualTrainer, extra_metadata: dict[str, Any] | None = None) -> World:
+def merged_world(run: MergeInputs, extra_metadata: dict[str, Any] | None = None) -> World:
     """The world file content of a finished two-state run (module docstring)."""
-    d1, d2 = trainer.data1, trainer.data2
-    s1, s2 = trainer.config.states
-    sources = choose_object_sources(trainer) if len(trainer.P1) else []
-    field, classes, info = merged_field(trainer, sources)
+    d1, d2 = run.data1, run.data2
+    s1, s2 = run.states
+    sources = choose_object_sources(run) if len(run.P1) else []
+    field, classes, info = merged_field(run, sources)
     meta = {
         "format_note": "see dsg_gym.world",
         "num_classes": d1.num_classes,
         "object_ids": list(d1.object_ids),
         "object_names": list(d1.object_names),
-        "train_config": trainer.config.base.to_dict(),
+        "train_config": run.base_config,
         "source": d1.source,
         "state": s1,
         "training_states": [s1, s2],
@@ -158,18 +192,18 @@ def merged_world(trainer: DualTrainer, extra_metadata: dict[str, Any] | None = N
         "heldout_views_by_state": {s1: list(d1.heldout), s2: list(d2.heldout)},
         "background": list(d1.background),
         "image_size": [d1.width, d1.height],
-        "iterations": trainer.step,
-        "scene_extent": trainer.t1.extent,
+        "iterations": run.step,
+        "scene_extent": run.extent,
         "num_gaussians": field.num,
         "rasterize_mode": field.rasterize_mode,
         "eps2d": field.eps2d,
         "dual": {
-            **trainer.config.to_dict(),
-            "ablation": trainer.config.ablation,
+            **run.config,
+            "ablation": run.ablation,
             **info,
-            "field_sizes": [trainer.t1.field.num, trainer.t2.field.num],
-            "co_prune_log": trainer.prune_log[-50:],
-            "train_seconds": round(trainer.elapsed, 1),
+            "field_sizes": list(run.field_sizes),
+            "co_prune_log": run.prune_log[-50:],
+            "train_seconds": round(run.elapsed, 1),
         },
         **(extra_metadata or {}),
     }
@@ -188,11 +222,11 @@ def merged_world(trainer: DualTrainer, extra_metadata: dict[str, Any] | None = N
         classes.numpy(),
         d1.object_ids,
         d1.object_names,
-        trainer.poses,
+        run.poses,
         s1,
         cams,
-        trainer.classifier.weight.detach().numpy(),
-        trainer.classifier.bias.detach().numpy(),
+        run.classifier_weight,
+        run.classifier_bias,
         d1.units,
         meta,
     )

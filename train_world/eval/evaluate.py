@@ -30,10 +30,6 @@ Example::
 
 from __future__ import annotations
 
-import argparse
-import json
-import math
-import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -43,12 +39,13 @@ import torch
 
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.splat import rasterize, spherical_harmonics
-from dsg_gym.world import World, WorldFormatError, load_world
-from train_world.capture import CaptureError, load_capture
+from dsg_gym.world import World, load_world
+from train_world.capture import load_capture
 from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
+from train_world.eval.metrics import mask_iou, psnr, ssim
 from train_world.single_state.data import load_eval_views
 
-__all__ = ["capture_test_states", "evaluate", "evaluate_test_states", "main", "mask_iou", "mean_of_means", "render_gaussians"]
+__all__ = ["capture_test_states", "default_state", "evaluate", "evaluate_test_states", "mask_iou", "mean_of_means", "render_gaussians"]
 
 _PALETTE = np.array(
     [
@@ -105,35 +102,10 @@ def render_gaussians(
     return np.stack(rgbs), np.stack(feats)
 
 
-def mask_iou(pred: np.ndarray, gt: np.ndarray, classes: range) -> dict[int, float | None]:
-    """IoU per class (None where the class is in neither mask)."""
-    out = {}
-    for c in classes:
-        p, g = pred == c, gt == c
-        union = int((p | g).sum())
-        out[c] = None if union == 0 else int((p & g).sum()) / union
-    return out
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 
-def _ssim(a: np.ndarray, b: np.ndarray) -> float:
-    from skimage.metrics import structural_similarity
-
-    return float(
-        structural_similarity(
-            a,
-            b,
-            channel_axis=2,
-            data_range=1.0,
-            gaussian_weights=True,
-            sigma=1.5,
-            use_sample_covariance=False,
-        )
-    )
 
 
 def _u8(img: np.ndarray) -> np.ndarray:
@@ -214,8 +186,8 @@ def evaluate(
         entry: dict[str, Any] = {
             "view": views.names[i],
             "index": views.indices[i],
-            "psnr": _psnr(ours, gt_imgs[i]),
-            "ssim": _ssim(ours, gt_imgs[i]),
+            "psnr": psnr(ours, gt_imgs[i]),
+            "ssim": ssim(ours, gt_imgs[i]),
         }
         row = [
             _u8(gt_imgs[i]),
@@ -335,55 +307,13 @@ def _markdown(r: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="dsg-eval",
-        description=__doc__.split("\n")[0].split(": ", 1)[1],
-        epilog=__doc__.split("Example::", 1)[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("world", type=Path, help="world file written by dsg-train")
-    p.add_argument("capture", type=Path, help="the capture (or NeRF-Blender folder) it was trained on")
-    p.add_argument("--out", type=Path, required=True, help="output folder for report.json/report.md/grid.png")
-    p.add_argument(
-        "--state",
-        help="evaluate all views of this state at its object poses; 'test': every test state of the capture "
-        "(default: 'test' for a two-state world, or one trained without held-out views, on a capture with test "
-        "states; else the held-out views of the training state)",
-    )
-    p.add_argument("--suite", action="store_true",
-                   help="instead: run the DSG-World comparison (dsg-suite); the other options are dsg-suite's")
-    return p
-
-
-def _default_state(world_path: Path, capture: Path) -> str | None:
+def default_state(world_path: str | Path, capture: str | Path) -> str | None:
+    """What ``dsg-eval`` evaluates when no state is named: ``"test"`` (every test state of the capture) for a
+    two-state world or one trained without held-out views, on a capture with test states; ``None`` (the
+    world's own held-out views, or a NeRF-Blender folder's test split) otherwise."""
     meta = load_world(world_path).metadata
     if "dual" not in meta and meta.get("heldout_views"):
         return None  # its own held-out views
     if not (Path(capture) / "scene.json").is_file():
         return None  # NeRF-Blender data: its test split
     return "test" if capture_test_states(capture) else None
-
-
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if "--suite" in argv:  # dsg-eval --suite: the comparison, with dsg-suite's options
-        from train_world.suite.runner import main as suite_main
-
-        return suite_main([a for a in argv if a != "--suite"])
-    args = _parser().parse_args(argv)
-    try:
-        state = args.state if args.state is not None else _default_state(args.world, args.capture)
-        if state == "test":
-            r = evaluate_test_states(args.world, args.capture, args.out)
-        else:
-            r = evaluate(args.world, args.capture, args.out, state=state)
-    except (WorldFormatError, CaptureError, ValueError, KeyError) as e:
-        print(f"dsg-eval: error: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps({"out": str(args.out), "views": r["views"], "mean": r["mean"]}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -16,7 +16,6 @@ Mask ids (any of 1..255) map to contiguous classes ``1..K`` in the order of the 
 from __future__ import annotations
 
 from collections.abc import Mapping
-
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any

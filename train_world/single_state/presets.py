@@ -123,16 +123,14 @@ _MIP = {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": M
 _AA = {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": 0.0}
 
 # ``default`` and ``paper`` train with Mip-Splatting's antialiased rasterizer and 2D Mip filter but without its
-# 3D smoothing filter (README "Mip-Splatting"): on two_blocks (dsg-synth 1.3) held-out views scored 36.70 dB
-# without it and 36.17 / 35.61 / 35.35 dB with variance factors 0.05 / 0.1 / 0.2, and the objects' PSNR from
-# cameras 0.35-1.0 m away stayed within 0.35 dB of the filtered worlds. ``--mip`` adds the 3D filter (0.2).
-# ``quick`` keeps 3DGS's classic rasterizer: on its 32-pixel test data the filters cost 2 dB.
+# 3D smoothing filter: on the synthetic scenes held-out views score higher without it, and objects seen from
+# nearer cameras lose little. ``--mip`` adds the 3D filter (0.2). ``quick`` keeps 3DGS's classic rasterizer: on
+# its 32-pixel test data the filters cost 2 dB.
 # ``default`` trains two states (DSG-World) for 4500 steps, the first 3000 reconstruction only (a reconstruction
-# step renders two views, a joint step about five), with at most 60k Gaussians per field: on two_blocks (dsg-synth
-# 1.3) 36.04 dB at the test states in 10.7 min here, against 35.49 dB in 8.4 min for 1500 + 1500 steps and
-# 35.62 dB in 11.9 min for 4000 + 1000 (session 14), all with 42 of each state's 48 views; training on all 48
-# (``dsg-train``'s default on captures with test states since session 15) gives 36.23 dB. Then 4000 steps refine
-# the merged world on both states' views (:mod:`train_world.dual_state.refine`, about 3 min): 37.93 dB (session 16).
+# step renders two views, a joint step about five), with at most 60k Gaussians per field, then refines the merged
+# world on both states' views for 4000 steps (:mod:`train_world.dual_state.refine`). The schedule was chosen
+# against shorter and differently split ones on the synthetic scenes (docs/training.md; figures in
+# docs/benchmarks.md).
 PRESETS: dict[str, Preset] = {
     "quick": Preset(
         name="quick",
@@ -247,3 +245,45 @@ class TrainConfig:
         if d.get("background") is not None:
             d["background"] = tuple(float(x) for x in d["background"])
         return cls(**d)
+
+
+def depth_overrides(weight: float | None) -> dict[str, float]:
+    """Preset fields for ``--depth-weight`` (none when not given)."""
+    return {} if weight is None else {"lambda_depth": float(weight)}
+
+
+_SCHEDULE = (
+    "densify_from",
+    "densify_until",
+    "densify_every",
+    "reset_every",
+    "sh_degree_every",
+    "checkpoint_every",
+)
+
+
+def scaled_preset(
+    name: str, iterations: int | None = None, max_gaussians: int | None = None, *, two_state: bool = False
+) -> Preset:
+    """Preset ``name``; with ``iterations``, every schedule step count scaled by ``iterations / preset's``
+    (so an opacity reset never lands at the end of a shortened run); ``max_gaussians``: the field size cap.
+    ``two_state``: the defaults are the preset's two-state step count and cap (``dual_iterations``,
+    ``dual_max_gaussians``) where it has them."""
+    p = get_preset(name)
+    if two_state:
+        iterations = p.dual_iterations if iterations is None else iterations
+        max_gaussians = p.dual_max_gaussians if max_gaussians is None else max_gaussians
+    if max_gaussians is not None:
+        if max_gaussians < 1000:
+            raise ValueError(f"--max-gaussians must be at least 1000, got {max_gaussians}")
+        p = dataclasses.replace(p, max_gaussians=int(max_gaussians))
+    if iterations is None or iterations == p.iterations:
+        return p
+    if iterations < 1:
+        raise ValueError(f"--iterations must be at least 1, got {iterations}")
+    f = iterations / p.iterations
+    return dataclasses.replace(
+        p,
+        iterations=int(iterations),
+        **{k: max(1, round(getattr(p, k) * f)) for k in _SCHEDULE},
+    )

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import torch
 
 from dsg_gym.geometry import quat_to_rotmat
-
 from train_world.single_state.field import PARAM_NAMES, SegmentedField
 
 __all__ = ["DensifyStrategy", "StrategyConfig", "update_rows"]

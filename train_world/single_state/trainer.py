@@ -20,15 +20,32 @@ from tqdm import tqdm
 
 from dsg_gym.splat.finite import all_finite
 from dsg_gym.world import Cameras, World
-
-from train_world.world_writer import build_world, write_world
-from train_world.single_state.checkpoint import load_checkpoint, optimizer_from_tensors, optimizer_to_tensors, save_checkpoint
+from train_world.single_state.checkpoint import (
+    load_checkpoint,
+    optimizer_from_tensors,
+    optimizer_to_tensors,
+    save_checkpoint,
+)
 from train_world.single_state.data import TrainData
 from train_world.single_state.field import PARAM_NAMES, Classifier, SegmentedField
-from train_world.single_state.init import carve_silhouettes, initial_field, points_from_depth, points_in_bounds, scene_bounds_from_cameras, scene_extent
-from train_world.single_state.losses import depth_loss, identity_loss, neighbour_kl_loss, photometric_loss, psnr
+from train_world.single_state.init import (
+    carve_silhouettes,
+    initial_field,
+    points_from_depth,
+    points_in_bounds,
+    scene_bounds_from_cameras,
+    scene_extent,
+)
+from train_world.single_state.losses import (
+    depth_loss,
+    identity_loss,
+    neighbour_kl_loss,
+    photometric_loss,
+    psnr,
+)
 from train_world.single_state.presets import TrainConfig
 from train_world.single_state.strategy import DensifyStrategy, StrategyConfig
+from train_world.world_writer import build_world, write_world
 
 __all__ = ["Trainer", "TrainingDiverged", "check_gradients", "make_optimizers", "means_lr"]
 

@@ -19,7 +19,7 @@ scenes (made with the same settings) into one table, a later file's (scene, meth
 ``--methods`` picks the rows to keep. It refuses to mix rows of ours (B, B+C, B+C+P) trained with different
 two-state schedules (steps, first joint step, refinement steps: ``table.json``'s ``two_state_schedule`` and each training's record),
 and rows of any method that held out different views of the training states (``holdout_every`` in each
-training's record: 0 since session 15, as every suite capture has test states; 8 before).
+training's record: 0, as every suite capture has test states; tables whose records lack it held out 8).
 
 Examples::
 
@@ -33,7 +33,6 @@ Examples::
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -42,8 +41,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-
-__all__ = ["METHODS", "main", "merge_tables", "run_suite"]
+__all__ = ["METHODS", "merge_tables", "run_suite"]
 
 # settings that must agree for runs to share one table
 _SETTINGS = ("preset", "iterations", "mip", "max_gaussians", "synth_args", "seed", "pseudo_every")
@@ -72,7 +70,7 @@ def _run_json(cmd: list[str], log: Path) -> dict[str, Any]:
 
 def _provenance() -> dict[str, Any]:
     """Which code made the numbers: the git commit (``-dirty`` with uncommitted changes) and the time."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
 
     def git(*a: str) -> str | None:
         try:
@@ -91,8 +89,8 @@ def _provenance() -> dict[str, Any]:
 def two_state_schedule(preset: str, iterations: int | None, refine_steps: int | None = None) -> list[int]:
     """[steps, first joint step, refinement steps] of ``dsg-train``'s two-state run with this preset,
     ``--iterations`` and ``--refine-steps`` (``None``: the preset's)."""
-    from train_world.dual_state.cli import scaled_preset
     from train_world.dual_state.trainer import joint_start_step
+    from train_world.single_state.presets import scaled_preset
 
     p = scaled_preset(preset, iterations, two_state=True)
     refine = p.dual_refine_steps if refine_steps is None else int(refine_steps)
@@ -100,10 +98,10 @@ def two_state_schedule(preset: str, iterations: int | None, refine_steps: int | 
 
 
 _OURS = ("B", "BC", "BCP")
-# what dsg-train did before table.json recorded its schedule (until session 13): the joint phase from half the
-# steps, and ``default`` trained 3000 two-state steps
+# what dsg-train did for tables that do not record their schedule: the joint phase from half the steps, and
+# ``default`` trained 3000 two-state steps
 _LEGACY_DEFAULT_STEPS = 3000
-# and every training (baselines too) held out every 8th view of each state (until session 15)
+# and every training (baselines too) of such tables held out every 8th view of each state
 _LEGACY_HOLDOUT = 8
 
 
@@ -121,7 +119,7 @@ def _one_value(values: dict[tuple[str, str], Any], what: str) -> Any:
 
 def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]:
     """(steps, first joint step, refinement steps) that trained one of ours' rows: from its training record,
-    else the table's (records and tables before session 16 had no refinement: 0); () when neither tells."""
+    else the table's (records and tables without ``refine_steps`` had no refinement: 0); () when neither tells."""
     from train_world.dual_state.trainer import joint_start_step
 
     train = row.get("train") or {}
@@ -140,7 +138,7 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
     replaces an earlier one's), keeping ``methods`` (None: all). Raises ``ValueError`` naming the setting when
     the runs' settings differ, when the rows kept for ours (B, B+C, B+C+P) were trained with different
     two-state schedules (steps, first joint step, refinement steps), or when the rows kept held out different views
-    (``holdout_every`` of their training records; tables before session 15: 8)."""
+    (``holdout_every`` of their training records; 8 where a record lacks it)."""
     if not tables:
         raise ValueError("merge needs at least one table.json")
     first = tables[0]
@@ -179,11 +177,10 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
 
 
 def _scene_list(arg: str) -> list[str]:
-    from train_world.synth.cli import main as _  # noqa: F401  (fails early if synth is unavailable)
+    from train_world.synth.spec import default_scene_names
 
     if arg == "all":
-        root = Path(__file__).resolve().parents[1] / "assets" / "scenes"
-        return sorted(p.stem for p in root.glob("*.json"))
+        return sorted(default_scene_names())
     return [s for s in arg.split(",") if s]
 
 
@@ -284,7 +281,7 @@ def run_suite(
                 [
                     py,
                     "-m",
-                    "train_world.synth.cli",
+                    "train_world.cli.synth",
                     "--scene",
                     scene,
                     "--out",
@@ -303,9 +300,9 @@ def run_suite(
             it += ["--max-gaussians", str(max_gaussians)]
         if mip is not None:
             it += ["--mip" if mip else "--no-mip"]
-        single = [py, "-m", "train_world.suite.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed),
+        single = [py, "-m", "train_world.cli.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed),
                   "--resume", *it]
-        dual = [py, "-m", "train_world.dual_state.cli", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
+        dual = [py, "-m", "train_world.cli.train", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
                 *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]), "--resume", *it,
                 *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))])]
         recon_ckpt, recon_info = wdir / "recon.ckpt", wdir / "recon.json"
@@ -321,7 +318,7 @@ def run_suite(
                     if not a_world.is_file():
                         _run_json([*single, "--out", str(a_world), "--checkpoint", str(wdir / "a.dsgw.ckpt")],
                                   logs / "a.log")
-                    cmd = [py, "-m", "train_world.suite.baselines", "knn", str(a_world), "--out", str(world)]
+                    cmd = [py, "-m", "train_world.cli.baselines", "knn", str(a_world), "--out", str(world)]
                 else:
                     # the ablations share one reconstruction phase (identical in all of them), then branch
                     if not recon_info.is_file():
@@ -399,88 +396,3 @@ def _write_tables(out: Path, results: dict[str, Any]) -> None:
             lines.append(f"| {m} | {s} | {t.get('wall_seconds', '-')} | {t.get('peak_rss_mb', '-')} |")
     atomic_write_json(out / "table.json", results)
     atomic_write_bytes(out / "table.md", ("\n".join(lines) + "\n").encode("utf-8"))
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="dsg-suite",
-        description=__doc__.split("\n")[0].split(": ", 1)[1],
-        epilog=__doc__.split("Examples::", 1)[1],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("--out", type=Path, required=True, help="output folder (captures, worlds, eval, tables)")
-    p.add_argument("--merge", type=Path, nargs="+", metavar="TABLE_JSON",
-                   help="train nothing: join these runs' table.json files into OUT/table.md and OUT/table.json")
-    p.add_argument("--scenes", default="all", help="comma-separated scene names or 'all' (default)")
-    p.add_argument("--methods", default="a,b,B,BC,BCP", help="subset of a,b,B,BC,BCP (default: all)")
-    p.add_argument("--preset", default="default")
-    p.add_argument("--iterations", type=int, help="steps per training (schedules scaled)")
-    p.add_argument("--pseudo-every", type=int, help="pseudo-state loss every n-th joint step (default: dsg-train's)")
-    p.add_argument("--max-gaussians", type=int,
-                   help="cap on each field's Gaussian count, baseline (a) too (default: the preset's two-state cap)")
-    p.add_argument("--refine-steps", type=int,
-                   help="refinement steps after ours' joint phase (default: the preset's; 0: none, the paper's method)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
-                   help="train every world with (or without) the Mip-Splatting filters (default: the preset's)")
-    p.add_argument("--width", type=int)
-    p.add_argument("--height", type=int)
-    p.add_argument("--views", type=int)
-    p.add_argument("--test-views", type=int)
-    p.add_argument("--test-states", type=int)
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = _parser()
-    args = parser.parse_args(argv)
-    methods = [m for m in args.methods.split(",") if m]
-    bad = [m for m in methods if m not in METHODS]
-    if bad:
-        print(f"dsg-suite: error: unknown methods {bad}; choose from {list(METHODS)}", file=sys.stderr)
-        return 2
-    if args.merge:  # joining tables trains nothing: a training option here is a mistake, not a no-op
-        defaults = vars(parser.parse_args(["--out", str(args.out)]))
-        given = ["--" + k.replace("_", "-") for k, v in vars(args).items()
-                 if k not in ("merge", "methods") and v != defaults[k]]
-        if given:
-            print(f"dsg-suite: error: --merge trains nothing and takes no training options (got {', '.join(given)})",
-                  file=sys.stderr)
-            return 2
-        try:
-            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge], methods)
-        except (OSError, ValueError, KeyError) as e:
-            print(f"dsg-suite: error: {e}", file=sys.stderr)
-            return 2
-        args.out.mkdir(parents=True, exist_ok=True)
-        _write_tables(args.out, r)
-        print(json.dumps({"out": str(args.out), "mean_over_scenes": r["mean_over_scenes"]}))
-        return 0
-    synth = []
-    for name in ("width", "height", "views", "test_views", "test_states"):
-        v = getattr(args, name)
-        if v is not None:
-            synth += [f"--{name.replace('_', '-')}", str(v)]
-    try:
-        r = run_suite(
-            args.out,
-            _scene_list(args.scenes),
-            methods,
-            preset=args.preset,
-            iterations=args.iterations,
-            synth_args=synth,
-            seed=args.seed,
-            pseudo_every=args.pseudo_every,
-            max_gaussians=args.max_gaussians,
-            mip=args.mip,
-            refine_steps=args.refine_steps,
-        )
-    except (RuntimeError, ValueError) as e:
-        print(f"dsg-suite: error: {e}", file=sys.stderr)
-        return 2
-    print(json.dumps({"out": str(args.out), "mean_over_scenes": r["mean_over_scenes"]}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

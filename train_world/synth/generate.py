@@ -18,7 +18,15 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from train_world.capture.format import FORMAT_NAME, FORMAT_VERSION, atomic_write_json, encode_png, matrix_to_list, staged_directory, write_state_views
+from train_world.capture.format import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    atomic_write_json,
+    encode_png,
+    matrix_to_list,
+    staged_directory,
+    write_state_views,
+)
 from train_world.synth.build import LIGHTING, build_scene, set_object_poses  # noqa: E402
 from train_world.synth.cameras import orbit_c2w  # noqa: E402
 from train_world.synth.render import SceneRenderer, depth_to_png_units  # noqa: E402

@@ -28,7 +28,6 @@ import numpy as np  # noqa: E402
 from dsg_gym.gaussians import GaussianSet  # noqa: E402
 from dsg_gym.poses import rotmat_to_quat  # noqa: E402
 from dsg_gym.world_model import Cameras, TableBounds, WorldModel  # noqa: E402
-
 from train_world.synth.build import build_scene, set_object_poses  # noqa: E402
 from train_world.synth.cameras import orbit_c2w  # noqa: E402
 from train_world.synth.generate import GenerateConfig, rng_for  # noqa: E402
@@ -410,24 +409,3 @@ def to_world(model: WorldModel):
         metadata=MappingProxyType({**model.metadata, "reference_state": "state1", "name": model.name}),
         units="metres",
     )
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m train_world.synth.geom_world --scene two_blocks --out assets/worlds/default_geom.dsgworld``"""
-    import argparse
-
-    from train_world.world_writer import write_world
-
-    ap = argparse.ArgumentParser(description="Write the geometry world of a synthetic scene as a world file.")
-    ap.add_argument("--scene", default="two_blocks")
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--detail", type=float, default=1.0)
-    args = ap.parse_args(argv)
-    wm = build_geom_world(args.scene, GeomWorldConfig(seed=args.seed, detail=args.detail))
-    print(write_world(args.out, to_world(wm)))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -16,7 +16,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from train_world.synth.shapes import mesh_vertices, pose_matrix, rest_rotation, resting_height, support, yaw_rotation
+from train_world.synth.shapes import (
+    mesh_vertices,
+    pose_matrix,
+    rest_rotation,
+    resting_height,
+    support,
+    yaw_rotation,
+)
 from train_world.synth.spec import SceneSpec, Shape
 
 __all__ = [

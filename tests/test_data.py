@@ -268,6 +268,39 @@ def test_bad_objects_in_scene_json(broken):
         load_capture(broken)
 
 
+@pytest.mark.parametrize("version", [99, 0, "1", 1.5, True])
+def test_scene_json_of_unknown_format_version_is_refused(broken, version):
+    _edit_json(broken / "scene.json", lambda d: d.update(format_version=version))
+    with pytest.raises(CaptureError, match="format_version") as e:
+        load_capture(broken)
+    assert "scene.json" in str(e.value)
+    if version == 99:
+        assert "upgrade dsg-gym" in str(e.value)
+
+
+def test_scene_json_of_another_format_is_refused(broken):
+    _edit_json(broken / "scene.json", lambda d: d.update(format="something-else"))
+    with pytest.raises(CaptureError, match="not a 'dsg-capture' capture"):
+        load_capture(broken)
+
+
+@pytest.mark.parametrize("key", ["file_path", "mask_path", "depth_path"])
+@pytest.mark.parametrize("where", ["../../../etc/passwd", "/etc/passwd", "../../outside.png"])
+def test_frame_paths_never_leave_the_capture(broken, tmp_path, key, where):
+    outside = tmp_path / "outside.png"
+    Image.new("RGB", (32, 24)).save(outside)  # a readable file outside the capture must be refused too
+    _edit_json(broken / "state1" / "transforms.json", lambda d: d["frames"][0].update({key: where}))
+    with pytest.raises(CaptureError, match="leaves the capture folder") as e:
+        load_capture(broken)
+    assert key in str(e.value) and "frames[0]" in str(e.value)
+
+
+def test_frame_path_of_the_wrong_type_is_refused(broken):
+    _edit_json(broken / "state1" / "transforms.json", lambda d: d["frames"][1].update(file_path=["a.png"]))
+    with pytest.raises(CaptureError, match="'file_path' must be a non-empty relative path"):
+        load_capture(broken)
+
+
 def test_distortion_and_size_are_checked(broken):
     _edit_json(broken / "state1" / "transforms.json", lambda d: d.update(k1=0.1))
     with pytest.raises(CaptureError, match="distortion k1"):

@@ -27,7 +27,7 @@ import torch
 from PIL import Image
 
 from train_world.capture.cameras import check_rigid, focal_from_fov, intrinsics_matrix, opengl_c2w_to_viewmat
-from train_world.capture.format import DEPTH_SCALE
+from train_world.capture.format import DEPTH_SCALE, FORMAT_NAME, FORMAT_VERSION
 
 __all__ = ["Capture", "CaptureError", "ObjectInfo", "Views", "load_blender", "load_capture", "load_views"]
 
@@ -217,11 +217,20 @@ def _read_depth(
     return np.asarray(img).astype(np.float32) * np.float32(scale)
 
 
-def _resolve(base: Path, rel: str, blender_ext: str | None) -> Path:
+def _resolve(base: Path, rel: Any, blender_ext: str | None, root: Path, where: str, key: str) -> Path:
+    """``rel`` (a frame's ``file_path``, ``mask_path`` or ``depth_path``) as a path under ``base``; a capture
+    names only files inside its own folder ``root``, so any other path is refused (nothing outside is read)."""
+    if not isinstance(rel, str) or not rel:
+        raise CaptureError(f"{where}: '{key}' must be a non-empty relative path, got {rel!r}")
     p = Path(rel)
     p = p if p.is_absolute() else base / p
     if blender_ext and not p.suffix and not p.exists():
         p = p.with_name(p.name + blender_ext)
+    if not p.resolve().is_relative_to(root.resolve()):
+        raise CaptureError(
+            f"{where}: '{key}' {rel!r} leaves the capture folder {root}; keep every file inside it "
+            "and name it relative to its transforms.json"
+        )
     return p
 
 
@@ -268,12 +277,14 @@ def load_views(
     max_views: int | None = None,
     blender_ext: str | None = ".png",
     rigid_tol: float = 1e-4,
+    root: str | Path | None = None,
 ) -> Views:
     """Load the frames of one ``transforms.json`` (ours, nerfstudio or NeRF-Blender).
 
     ``downscale``: integer factor (images area-averaged, masks/depth nearest, intrinsics scaled);
     ``valid_ids``: object ids allowed in masks (besides 0); ``expected_count``: number of frames required;
-    ``max_views``: keep only the first frames; ``blender_ext``: extension added to ``file_path`` without one.
+    ``max_views``: keep only the first frames; ``blender_ext``: extension added to ``file_path`` without one;
+    ``root``: the folder every frame's files must lie in (default: the one holding ``transforms_json``).
     """
     tj = Path(transforms_json)
     meta = _read_json(tj)
@@ -292,6 +303,7 @@ def load_views(
         raise ValueError("downscale must be a positive integer")
     ids = None if valid_ids is None else np.asarray(sorted(set(int(i) for i in valid_ids)), dtype=np.int64)
     base = tj.parent
+    root = base if root is None else Path(root)
     with_masks = load_masks and any("mask_path" in f for f in frames)
     with_depth = load_depth and any("depth_path" in f for f in frames)
     depth_scale = float(meta.get("depth_unit_scale_factor", DEPTH_SCALE))
@@ -309,7 +321,7 @@ def load_views(
             raise CaptureError(
                 str(e) if str(e).startswith(str(tj)) else f"{where}.transform_matrix: {e}"
             ) from e
-        ipath = _resolve(base, fr["file_path"], blender_ext)
+        ipath = _resolve(base, fr["file_path"], blender_ext, root, where, "file_path")
         rgb, (full_w, full_h) = _read_rgb(ipath, background, downscale)
         h, w = rgb.shape[:2]
         if size is None:
@@ -328,7 +340,7 @@ def load_views(
                 raise CaptureError(f"{where}: has no mask_path but other frames do (mask count mismatch)")
             masks.append(
                 _read_mask(
-                    _resolve(base, fr["mask_path"], None), ipath, (full_w, full_h), (w, h), downscale, ids
+                    _resolve(base, fr["mask_path"], None, root, where, "mask_path"), ipath, (full_w, full_h), (w, h), downscale, ids
                 )
             )
         if with_depth:
@@ -336,7 +348,7 @@ def load_views(
                 raise CaptureError(f"{where}: has no depth_path but other frames do (depth count mismatch)")
             depths.append(
                 _read_depth(
-                    _resolve(base, fr["depth_path"], None),
+                    _resolve(base, fr["depth_path"], None, root, where, "depth_path"),
                     ipath,
                     (full_w, full_h),
                     (w, h),
@@ -421,6 +433,21 @@ def _pose_list(
     return np.stack([by_id[i] for i in want])
 
 
+def _check_format(meta: Mapping, src: Path) -> None:
+    """Refuse a ``scene.json`` of another format, or of a newer format version than this loader reads."""
+    if "format" in meta and meta["format"] != FORMAT_NAME:
+        raise CaptureError(f"{src}: format {meta['format']!r} is not a {FORMAT_NAME!r} capture")
+    if "format_version" not in meta:
+        return
+    v = meta["format_version"]
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise CaptureError(f"{src}: format_version must be a positive integer, got {v!r}")
+    if v > FORMAT_VERSION:
+        raise CaptureError(
+            f"{src}: format_version {v} is newer than this dsg-gym reads ({FORMAT_VERSION}); upgrade dsg-gym"
+        )
+
+
 def load_capture(
     path: str | Path,
     states: Sequence[str] | None = None,
@@ -437,6 +464,7 @@ def load_capture(
     meta = _read_json(src)
     if not isinstance(meta, dict):
         raise CaptureError(f"{src}: expected a JSON object")
+    _check_format(meta, src)
     objects = _objects(meta, src)
     state_meta = meta.get("states")
     if state_meta is None:
@@ -473,6 +501,7 @@ def load_capture(
             valid_ids=ids,
             expected_count=None if count is None else int(count),
             rigid_tol=rigid_tol,
+            root=root,
         )
     supplied: dict[tuple[str, str], np.ndarray] = {}
     for j, rt in enumerate(meta.get("relative_transforms", [])):

@@ -8,9 +8,8 @@ learning rates decaying linearly to zero.
 Higher SH bands that the SH cut zeroed stay zero; Gaussians given a ``min_opacity`` never fall below it
 (``dsg-compact`` passes 0.2 for an object's collision-hull vertices, so its physics proxy is unchanged).
 Scales may shrink but, unless ``grow_scales``, never grow: a larger footprint costs render time in every
-pixel it reaches, and speed is what compaction is for: on the bundled world (0.3 dB budget, before the
-learning-rate decay) letting them grow ended at fewer Gaussians (14.3k against 15.7k) and better
-self-consistency (38.4 against 33.2 dB) but renders 20% slower.
+pixel it reaches, and speed is what compaction is for: letting them grow ends at fewer Gaussians and better
+self-consistency but a slower render.
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ Per step both fields take one view of their own state (Gaussian Grouping's ``L_r
 with ``L_align`` = ``T_1->2(G1)`` rendered at this step's state-2 view against its image and mask plus
 ``T_2->1(G2)`` at the state-1 view against state 1 (B), and ``L_pseudo`` = both fields moved to a sampled
 collision-free configuration and rendered from one training camera (P; every ``pseudo_every``-th joint
-step: 2 by default, 1 = every step as in the paper; on five_small both gave 38.1 dB at the test states,
-and 2 saves a tenth of the training time). Co-pruning (C) runs every
+step: 2 by default, 1 = every step as in the paper; both reach the same accuracy at the test states and 2
+saves a tenth of the training time). Co-pruning (C) runs every
 ``prune_every`` joint steps and once at the end. Each field keeps its own Adam optimisers and 3DGS
 densification (:class:`~train_world.single_state.strategy.DensifyStrategy`, driven by its reconstruction render);
 the classifier has one Adam. Object labels (for the transfer) are the classifier's argmax on each Gaussian's

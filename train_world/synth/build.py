@@ -13,11 +13,10 @@ the surface's own frame: a view-dependent colour (SH of the ray direction) repre
 surface and for a moved object alike. ``"headlight"`` is generator 1.2's ``soft``: the same strengths from
 MuJoCo's directional headlight, which shines along the camera *axis*; a point off the image centre is then lit
 by a direction that is not its viewing ray, and no function of the ray direction reproduces that across
-cameras (on ``five_small`` this cost single-state worlds 1.4 dB on held-out views and 2.0 dB on test states).
+cameras, and worlds trained on such captures lose accuracy on held-out views and test states.
 World-fixed lights shade a moved or turned object differently, which the method does not model (DSG-World's
-stated limitation). On ``two_blocks`` a perfect world model is held to an object-pixel PSNR of 27-29 dB by the
-``spot`` lights and 39-41 dB by the ``soft`` ones (measured by carrying the lights along with each object; see
-the README).
+stated limitation): they cap the object-pixel PSNR even of a perfect world model, far lower for ``spot`` than
+for ``soft`` (``python -m benchmarks.lighting_ceiling``; figures in docs/benchmarks.md).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m dsg_gym.demo
+	$(PY) -m dsg_gym.cli.demo
 
 test: $(STAMP)
 	$(PY) -m ruff check .

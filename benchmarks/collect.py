@@ -1,4 +1,4 @@
-"""Data collection throughput: ``python -m benchmarks.collect --out collect.json``.
+"""Data collection throughput: ``python -m benchmarks.collect [--out FILE]``.
 
 ``dsg_gym.collect.collect`` on the bundled world (128x128, ``obs`` rgb + mask + poses, lossless RGB) with the
 ``random`` policy and 1 and 2 envs (sync / async with shared memory): rollout rate (transitions/s from the
@@ -22,7 +22,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 
 from dsg_gym.collect import collect
-from dsg_gym.collect.run import collect_episodes
+from dsg_gym.collect.episodes import collect_episodes
+
+from ._results import default_out
 
 
 def _settings(policy: str, size: int, steps: int, seed: int) -> dict:
@@ -65,12 +67,14 @@ def end_to_end(num_envs: int, episodes: int, size: int, steps: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="collect.json")
+    ap.add_argument("--out", help="JSON file to write (default: "
+                                  "benchmarks/results/collect/<date>-<commit>.json)")
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--episodes", type=int, default=12, help="random-policy episodes per configuration")
     ap.add_argument("--steps", type=int, default=100, help="time limit of the random episodes")
     ap.add_argument("--expert-episodes", type=int, default=100)
     args = ap.parse_args(argv)
+    args.out = args.out or str(default_out("collect"))
 
     result: dict = {
         "machine": {
@@ -96,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         f"expert: success {e['success_rate']:.1%}, collision-free {e['collision_free_rate']:.1%}, "
         f"mean length {e['mean_length']:.1f} steps, {e['transitions_per_s']:.0f} transitions/s (2 envs)"
     )
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=1))
     print(f"wrote {args.out}")
     return 0

@@ -1,4 +1,4 @@
-"""Environment step throughput: ``python -m benchmarks.env_step --out step.json``.
+"""Environment step throughput: ``python -m benchmarks.env_step [--out FILE]``.
 
 Single ``DSGWorld-v0`` on the bundled world (or ``--world FILE``, e.g. a ``dsg-compact`` output) at 128x128
 with ``obs=("rgb", "mask")``, random moves of one object per step (``collision="reject"``), with
@@ -24,6 +24,8 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 import dsg_gym  # noqa: E402,F401  registers DSGWorld-v0
+
+from ._results import default_out  # noqa: E402
 
 TARGET_STEPS = 500.0
 TARGET_RATIO = 3.0
@@ -124,13 +126,6 @@ class MujocoRun:
         return {"frames_per_s": float(np.median(self.rates)), "runs": [round(r, 1) for r in self.rates]}
 
 
-def mujoco_rate(size: int, frames: int, repeats: int, seed: int = 0) -> dict:
-    r = MujocoRun(size, seed)
-    for _ in range(repeats):
-        r.run(frames)
-    return r.result()
-
-
 def async_rate(size: int, steps: int, repeats: int, workers: int = 2, world: str | None = None) -> dict:
     envs = gym.make_vec(
         "DSGWorld-v0",
@@ -164,13 +159,15 @@ def async_rate(size: int, steps: int, repeats: int, workers: int = 2, world: str
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="step.json")
+    ap.add_argument("--out", help="JSON file to write (default: "
+                                  "benchmarks/results/env_step/<date>-<commit>.json)")
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--steps", type=int, default=600, help="steps (frames) per repeat")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--world", help="world file (default: the bundled world)")
     ap.add_argument("--env-only", action="store_true", help="only the single-env rates (no MuJoCo, no async)")
     args = ap.parse_args(argv)
+    args.out = args.out or str(default_out("env_step"))
     # the incremental env and MuJoCo take turns repeat by repeat, so that a change in the machine's load
     # reaches both rates alike
     runs = [EnvRun(True, args.size, world=args.world)] + ([] if args.env_only else [MujocoRun(args.size)])
@@ -203,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         # the runtime's kernels run on numba's own choice of layer (dsg_gym.splat.threads)
         "numba": {"threading_layer": numba.threading_layer(), "threads": numba.get_num_threads()},
     }
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(result, f, indent=2)
     print(json.dumps(result, indent=2))

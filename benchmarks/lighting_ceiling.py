@@ -1,4 +1,4 @@
-"""What world-fixed lights cost a perfect world model: ``python -m benchmarks.lighting_ceiling --out L.json``.
+"""What world-fixed lights cost a perfect world model: ``python -m benchmarks.lighting_ceiling [--out FILE]``.
 
 DSG-World moves each object's Gaussians rigidly, so an object keeps the shading it had when it was captured.
 MuJoCo's world-fixed lights shade a moved or turned object differently; the camera-carried light does not
@@ -26,6 +26,8 @@ import numpy as np
 
 from dsg_gym.poses import pose7_to_matrix
 from train_world.eval.metrics import psnr_from_mse
+
+from ._results import default_out
 
 __all__ = ["lighting_ceiling", "main"]
 
@@ -98,12 +100,14 @@ def lighting_ceiling(scene: str = "two_blocks", lighting: str = "soft", referenc
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.lighting_ceiling", description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    p.add_argument("--out", type=Path, help="JSON file to write (default: "
+                                            "benchmarks/results/lighting_ceiling/<date>-<commit>.json)")
     p.add_argument("--scenes", nargs="+", default=["two_blocks"], help="synthetic scene names (default two_blocks)")
     p.add_argument("--lighting", nargs="+", default=["soft", "spot"], choices=["soft", "spot", "headlight"])
     p.add_argument("--reference", default="state1", help="state whose shading the objects keep (default state1)")
     p.add_argument("--size", type=int, default=128)
     args = p.parse_args(argv)
+    args.out = args.out or default_out("lighting_ceiling")
     rows = []
     for scene in args.scenes:
         for lighting in args.lighting:

@@ -1,7 +1,7 @@
 """Joint step time under each OpenMP waiting choice, alone and with two trainings competing for the cores.
 
-    python -m benchmarks.omp_waiting --out wait.json --capture CAP --checkpoint CKPT [--steps 60] [--rounds 2]
-    python -m benchmarks.omp_waiting --out wait.json --quick        # seconds: the quick preset on a 24x24 scene
+    python -m benchmarks.omp_waiting --capture CAP --checkpoint CKPT [--steps 60] [--rounds 2] [--out FILE]
+    python -m benchmarks.omp_waiting --quick [--out FILE]        # the quick preset on a 24x24 scene
 
 Each OpenMP runtime reads its waiting policy once, when it loads, so every measurement is a fresh process:
 ``python -m benchmarks.train_step`` with the environment of the mode. Modes: ``auto`` (``OMP_WAIT_POLICY``
@@ -9,8 +9,8 @@ unset: what :mod:`train_world._openmp` chooses, normally torch's pool spinning a
 ``passive`` (both pools sleep, the choice before). ``alone`` runs one process at a time, modes alternating for
 ``--rounds`` rounds; ``pair`` starts two processes of the same mode, the second ``--stagger`` seconds after
 the first (so the first chooses on an idle machine and the second beside it, as when a second training starts
-during a first). A process loads and times its steps in well under a minute, so a long stagger lets the two
-run one after the other and the pair measures nothing: check that the pair's times exceed the alone ones.
+during a first). A stagger longer than one process's load and timed steps lets the two run one after the
+other and the pair measures nothing: check that the pair's times exceed the alone ones.
 Writes ``{config, runs: [{mode, setting, joint_ms, recon_ms, waiting}], summary: {setting: {mode: best joint
 ms}}, auto_over_passive: {setting: ratio}}``: the ratios come from one machine and session; the absolute times
 do not carry over.
@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from ._results import default_out
 
 MODES = ("auto", "passive")
 
@@ -86,7 +88,8 @@ def run(out: Path, bench_args: list[str], rounds: int, settings: tuple[str, ...]
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.omp_waiting", description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    p.add_argument("--out", type=Path, help="JSON file to write (default: "
+                                            "benchmarks/results/omp_waiting/<date>-<commit>.json)")
     p.add_argument("--capture", type=Path, help="two-state capture (benchmarks.train_step --capture)")
     p.add_argument("--checkpoint", type=Path, help="its joint-start checkpoint (benchmarks.train_step --checkpoint)")
     p.add_argument("--steps", type=int, default=60, help="timed joint steps per process (default 60)")
@@ -97,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
                         "steps overlap)")
     p.add_argument("--quick", action="store_true", help="the quick preset on a generated 24x24 scene")
     args = p.parse_args(argv)
+    args.out = args.out or default_out("omp_waiting")
     settings = tuple(s for s in args.settings.split(",") if s)
     if not settings or any(s not in ("alone", "pair") for s in settings):
         p.error(f"--settings must list alone and/or pair, got {args.settings!r}")

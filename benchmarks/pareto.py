@@ -1,4 +1,4 @@
-"""Run time against error: ``python -m benchmarks.pareto --out DIR`` (issue #9).
+"""Run time against error: ``python -m benchmarks.pareto [--out DIR]`` (issue #9).
 
 Sweeps the settings that trade speed for accuracy, one axis at a time around the env's default (plus
 combined points), on the bundled world and the seven synthetic scenes' held-out test states (ground truth
@@ -20,21 +20,21 @@ Writes ``DIR/pareto.json``, ``DIR/pareto.md`` and ``DIR/pareto.png`` (step time 
 marked) and the recommended renderer settings (``recommended`` in the JSON; rule in ``recommended.rule``).
 The bundled world's ground truth is ``two_blocks`` regenerated with the lighting and supersampling it was
 trained under (``world_generator_settings``: bit for bit the images it was trained on; the generator's own
-test cameras). The seven scenes have no trained worlds (about 30 min of
-training each), so their geometry worlds (``train_world.synth.geom_world``, baked under the generator's default
-lighting) stand in (``--scenes none`` skips them). ``--training`` adds novel-state PSNR
-against training wall-clock for the three ``dsg-train`` presets (``benchmarks.pareto_training``, heavy:
-``3 x --train-minutes``) and ``DIR/training.png``. ``--quick``: bundled world, a few points, a few steps
-(under a minute; what the test runs).
+test cameras). The seven scenes have no trained worlds (training each is long), so their geometry worlds
+(``train_world.synth.geom_world``, baked under the generator's default lighting) stand in (``--scenes none``
+skips them). ``--training`` adds novel-state PSNR against training wall-clock for the three ``dsg-train``
+presets (``benchmarks.pareto_training``, heavy: ``3 x --train-minutes``) and ``DIR/training.png``.
+``--quick``: bundled world, a few points, a few steps (what the test runs). ``DIR`` defaults to
+``benchmarks/results/pareto/<date>-<commit>/``.
 """
 
 from __future__ import annotations
 
 import os
 
-# numba's workqueue layer, on which the published front was measured (the runtime now takes numba's own
-# choice, OpenMP on the 2-core machine, with about 1.6x faster steps; the front compares settings on one
-# layer); train_world would pick OpenMP for training
+# numba's workqueue layer, on which the published front was measured (the runtime takes numba's own choice,
+# OpenMP where it loads, with faster steps; the front compares settings on one layer); train_world would
+# pick OpenMP for training
 _LAYER_SET_HERE = "NUMBA_THREADING_LAYER" not in os.environ
 _WAIT_SET_HERE = "OMP_WAIT_POLICY" not in os.environ
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
@@ -56,6 +56,7 @@ import numpy as np
 
 from . import pareto_core as C
 from . import pareto_report as report
+from ._results import default_out
 
 TOLERANCE_DB = 0.1
 REPO = Path(__file__).resolve().parents[1]
@@ -359,7 +360,8 @@ def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.pareto", description=__doc__.splitlines()[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog=__doc__.split("\n", 2)[2])
-    ap.add_argument("--out", type=Path, required=True, help="output folder (pareto.json, .md, .png)")
+    ap.add_argument("--out", type=Path, help="output folder (pareto.json, .md, .png; default: "
+                                                  "benchmarks/results/pareto/<date>-<commit>/)")
     ap.add_argument("--quick", action="store_true", help="tiny run: bundled world, few points and steps")
     ap.add_argument("--scenes", default=None, help="'all' (default), 'none' or a comma-separated list of "
                     "scene names for the geometry-world part (--quick: none)")
@@ -378,6 +380,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    args.out = args.out or default_out("pareto", "")
     from train_world.capture.format import atomic_write_bytes, atomic_write_json
 
     args.size = C.DEFAULT_SIZE

@@ -17,7 +17,7 @@ import numpy as np
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.poses import pose7_to_matrix
 from dsg_gym.scene_renderer import RenderSettings, SceneRenderer
-from dsg_gym.splat._numba_raster import ALPHA_MIN, T_MIN
+from dsg_gym.splat.numba_raster import ALPHA_MIN, T_MIN
 from dsg_gym.world_model import WorldModel
 
 DEFAULT_SIZE = 128  # the env's default observation size

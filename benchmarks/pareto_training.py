@@ -1,7 +1,7 @@
 """Training time against error: novel-state PSNR of DSG-World (``dsg-train``'s two-state trainer) against its
 training wall-clock, for the three presets, each capped at ``--train-minutes``.
 
-``python -m benchmarks.pareto_training --capture data/two_blocks --out training.json`` (``benchmarks.pareto
+``python -m benchmarks.pareto_training --capture data/two_blocks [--out FILE]`` (``benchmarks.pareto
 --training`` runs this in a subprocess, so training gets ``train_world``'s OpenMP threading layer while the
 env timings use the runtime's default).
 
@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 
 import train_world  # noqa: F401  (how torch's and numba's OpenMP pools wait, chosen before torch loads)
+
+from ._results import default_out
 
 PRESET_NAMES = ("quick", "default", "paper")
 
@@ -119,7 +121,8 @@ def _parser() -> argparse.ArgumentParser:
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog=__doc__.split("\n", 2)[2])
     ap.add_argument("--capture", type=Path, required=True, help="a dsg-synth capture (state1, state2, test_*)")
-    ap.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    ap.add_argument("--out", type=Path, help="JSON file to write (default: "
+                                             "benchmarks/results/pareto_training/<date>-<commit>.json)")
     ap.add_argument("--presets", default=",".join(PRESET_NAMES), help="comma-separated (default: all three)")
     ap.add_argument("--train-minutes", type=float, default=5.0, help="training time cap per preset (default 5)")
     ap.add_argument("--downscale", type=int, default=2, help="image downscale for training and evaluation")
@@ -133,6 +136,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    args.out = args.out or default_out("pareto_training")
     from train_world.capture.format import atomic_write_json
 
     presets = [s for s in args.presets.split(",") if s]

@@ -1,6 +1,6 @@
 """Renderer speed: numba kernels against the PyTorch reference, in the same run.
 
-    python -m benchmarks.render --out render.json [--quick]
+    python -m benchmarks.render [--quick] [--out FILE]
 
 Writes a JSON list of records ``{backend, n, width, height, channels, forward_ms,
 forward_backward_ms, peak_rss_mb}`` (medians over repeats); numba records also carry their
@@ -8,7 +8,7 @@ speed-up over the torch record of the same configuration. Each (n, size) runs in
 that peak RSS belongs to that configuration: numba is measured first, then torch in the same
 process (torch's peak includes numba's, which is far smaller).
 
-Scene: N Gaussians filling a 60-degree view at depths 2..6 (``dsg_gym.splat.scenes``),
+Scene: N Gaussians filling a 60-degree view at depths 2..6 (``benchmarks.splat_scenes``),
 19 channels (RGB + 16 identity features), loss = random projection of colours and alphas.
 """
 
@@ -25,6 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks._results import default_out
+
 SIZES = (128, 256)
 COUNTS = (5_000, 20_000, 100_000)
 CHANNELS = 19
@@ -38,7 +40,7 @@ def _measure(n: int, size: int, backend: str, repeats: int) -> dict:
     import torch
 
     from dsg_gym.splat import rasterize
-    from dsg_gym.splat.scenes import random_scene
+    from benchmarks.splat_scenes import random_scene
 
     scene = random_scene(n, width=size, height=size, channels=CHANNELS, seed=0)
     g = torch.Generator().manual_seed(1)
@@ -102,12 +104,14 @@ def _torch_repeats(n: int, size: int, quick: bool) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="render.json", help="output JSON path")
+    ap.add_argument("--out", help="JSON file to write (default: "
+                                  "benchmarks/results/render/<date>-<commit>.json)")
     ap.add_argument("--quick", action="store_true", help="fewer repeats, skip torch at the largest size")
     ap.add_argument("--repeats", type=int, default=None, help="numba repeats (default 20, quick 5)")
     ap.add_argument("--threading-layer", default="omp", choices=["omp", "workqueue"],
                     help="numba threading layer (omp: training's; workqueue: the runtime default)")
     args = ap.parse_args(argv)
+    args.out = args.out or str(default_out("render"))
     repeats = args.repeats or (5 if args.quick else 20)
     records = []
     for size in SIZES:
@@ -130,9 +134,9 @@ def main(argv: list[str] | None = None) -> int:
             r["speedup_vs_torch_forward"] = round(ref["forward_ms"] / r["forward_ms"], 2)
             r["speedup_vs_torch_forward_backward"] = round(ref["forward_backward_ms"] / r["forward_backward_ms"], 2)
     result = records
-    tmp = Path(args.out).with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    os.replace(tmp, args.out)
+    from dsg_gym.io.atomic import atomic_write_bytes
+
+    atomic_write_bytes(args.out, json.dumps(result, indent=1).encode())
     print(f"wrote {args.out}")
     return 0
 

@@ -1,4 +1,4 @@
-"""Numerical stress benchmark (issue #9): ``python -m benchmarks.stress --out stress.json [--quick]``.
+"""Numerical stress benchmark (issue #9): ``python -m benchmarks.stress [--quick] [--out FILE]``.
 
 The long versions of ``tests/stress`` (whose helpers it shares: ``tests/stress/_stress_ref.py``,
 ``tests/_worlds.py``, ``tests/_captures.py``), each section with pass/fail against the stated bounds:
@@ -18,7 +18,7 @@ The long versions of ``tests/stress`` (whose helpers it shares: ``tests/stress/_
   ``TrainingDiverged`` and resumed from the last checkpoint; the final world must equal a fault-free run's
   byte for byte. Truncated checkpoints must all be refused.
 
-The JSON (written atomically: temp file + ``os.replace``) holds the figures, the counts run, timings and
+The JSON (written atomically: :mod:`dsg_gym.io.atomic`) holds the figures, the counts run, timings and
 ``all_passed``; the exit status is 1 when a check failed. ``--quick`` divides every count by about 100.
 """
 
@@ -44,29 +44,15 @@ sys.path[:0] = [str(ROOT / "tests" / "stress"), str(ROOT / "tests")]
 
 import numpy as np
 import torch
-from _stress_ref import (
-    ALPHA_TOL,
-    CASES,
-    COLOR_TOL,
-    DEPTH_REL_TOL,
-    EXTENDED,
-    F64_TOL,
-    LD,
-    env_reference,
-    extreme_scene,
-    increment_blocks,
-    ld_matrices,
-    non_finite_entries,
-    quat_error,
-    random_action,
-    render_case,
-    render_errors,
-    rss_bytes,
-)
+from _stress_ref import (ALPHA_TOL, CASES, COLOR_TOL, DEPTH_REL_TOL, EXTENDED, F64_TOL, LD, env_reference,
+                         extreme_scene, increment_blocks, ld_matrices, non_finite_entries, quat_error,
+                         random_action, render_case, render_errors, rss_bytes)
 from tqdm import tqdm
 
 from dsg_gym import geometry as G
 from dsg_gym import poses as P
+
+from ._results import default_out
 
 POSE_TOL = 1e-9
 MEMORY_BOUND_MIB = 64
@@ -367,7 +353,7 @@ def training_faults(steps: int, faults: int, progress: bool) -> dict:
     from train_world.single_state.data import load_training_data
     from train_world.single_state.presets import TrainConfig, get_preset
     from train_world.single_state.trainer import Trainer, TrainingDiverged
-    from train_world.world_writer import encode_world
+    from dsg_gym.world import encode_world
 
     every = max(2, steps // 6)
     cfg = TrainConfig(
@@ -447,26 +433,14 @@ def training_faults(steps: int, faults: int, progress: bool) -> dict:
 SECTIONS = ("pose_chains", "env_pose_drift", "env_long_run", "render_extremes", "training_faults")
 
 
-def _write_json_atomic(path: Path, doc: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, indent=2)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m benchmarks.stress",
         description="Numerical stress benchmark (issue #9): long pose compositions, long env runs (NaN/Inf, "
         "memory), extreme renders (float32 vs float64), training under injected faults.",
     )
-    ap.add_argument("--out", type=Path, default=Path("stress.json"), help="JSON result (default stress.json)")
+    ap.add_argument("--out", type=Path, help="JSON file to write (default: "
+                                             "benchmarks/results/stress/<date>-<commit>.json)")
     ap.add_argument("--quick", action="store_true", help="about 1/100 of every count (a smoke run)")
     ap.add_argument(
         "--sections", default=",".join(SECTIONS), help=f"comma-separated subset of {','.join(SECTIONS)}"
@@ -475,6 +449,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.add_argument(f"--{key.replace('_', '-')}", type=int, default=None, help=f"(default {value})")
     ap.add_argument("--no-progress", action="store_true", help="no tqdm progress bars")
     args = ap.parse_args(argv)
+    args.out = args.out or default_out("stress")
     sections = [s for s in args.sections.split(",") if s]
     unknown = sorted(set(sections) - set(SECTIONS))
     if unknown:
@@ -534,7 +509,9 @@ def main(argv: list[str] | None = None) -> int:
         "numba_threading_layer": os.environ.get("NUMBA_THREADING_LAYER"),
         "load_average": list(os.getloadavg()),
     }
-    _write_json_atomic(args.out, result)
+    from dsg_gym.io.atomic import atomic_write_bytes
+
+    atomic_write_bytes(args.out, (json.dumps(result, indent=2) + "\n").encode())
     print(f"stress: wrote {args.out}; all passed: {result['all_passed']}", file=sys.stderr)
     return 0 if result["all_passed"] else 1
 

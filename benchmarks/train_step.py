@@ -1,7 +1,7 @@
 """Two-state training step time: reconstruction steps against joint (DSG-World) steps, in one process.
 
-    python -m benchmarks.train_step --out step.json [--scene two_blocks] [--steps 40] [--checkpoint CKPT]
-    python -m benchmarks.train_step --out step.json --quick          # seconds: a 24x24 scene, quick preset
+    python -m benchmarks.train_step [--scene two_blocks] [--steps 40] [--checkpoint CKPT] [--out FILE]
+    python -m benchmarks.train_step --quick [--out FILE]          # a 24x24 scene, quick preset
 
 Builds ``dsg-train``'s two-state trainer (``default`` preset) on a synthetic capture (generated into a
 temporary folder, 128x128) and times ``--steps`` reconstruction steps (each field renders its own view: 2
@@ -35,6 +35,8 @@ from typing import Any
 
 import train_world  # (OpenMP waiting and numba's threading layer, before torch loads)
 from train_world.capture.format import atomic_write_json
+
+from ._results import default_out
 
 
 def _time_steps(trainer, n: int, warmup: int) -> list[float]:
@@ -148,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.train_step",
                                 description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    p.add_argument("--out", type=Path, help="JSON file to write (default: "
+                                            "benchmarks/results/train_step/<date>-<commit>.json)")
     p.add_argument("--scene", default="two_blocks", help="dsg-synth scene (default two_blocks)")
     p.add_argument("--capture", type=Path, help="an existing two-state capture instead of generating --scene")
     p.add_argument("--checkpoint", type=Path,
@@ -161,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile", action="store_true", help="also profile the joint steps (cProfile)")
     p.add_argument("--quick", action="store_true", help="a 24x24 scene and the quick preset (for tests)")
     args = p.parse_args(argv)
+    args.out = args.out or default_out("train_step")
     if args.steps < 1 or args.warmup < 0:
         p.error("--steps must be >= 1 and --warmup >= 0")
     if args.checkpoint is not None and args.capture is None:

@@ -1,6 +1,6 @@
 """USD export speed: a 50k-Gaussian world to .usdc and .usda.
 
-    python -m benchmarks.usd_export --out usd.json [--repeats 5] [--quick]
+    python -m benchmarks.usd_export [--repeats 5] [--quick] [--out FILE]
 
 World: 40k background Gaussians + 5 objects x 2k (SH degree 3, 16 identity features, labels),
 4 cameras, a table collider; each export also writes a 200-step episode in a second variant.
@@ -24,6 +24,8 @@ import numpy as np
 
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.usd import Episode, UsdCamera, UsdObject, export_stage, read_stage
+
+from ._results import default_out
 
 BACKGROUND = 40_000
 OBJECTS = 5
@@ -153,14 +155,17 @@ def run_bundled(repeats: int) -> dict:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    parser.add_argument("--out", type=Path, help="JSON file to write (default: "
+                                                 "benchmarks/results/usd_export/<date>-<commit>.json)")
     parser.add_argument("--repeats", type=int, default=5, help="exports per configuration (median)")
     parser.add_argument("--quick", action="store_true", help="one repeat each")
     args = parser.parse_args(argv)
+    args.out = args.out or default_out("usd_export")
     records = run(1 if args.quick else args.repeats)
     records.append(run_bundled(1 if args.quick else args.repeats))
     usdc = [r for r in records if r["format"] == "usdc"]
     summary = {"target_usdc_s": 2.0, "usdc_under_target": all(r["export_s"] < 2.0 for r in usdc)}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"records": records, "summary": summary}, indent=1) + "\n")
     print(f"wrote {args.out}")
 

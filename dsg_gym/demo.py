@@ -1,32 +1,36 @@
-"""Demo: solve a rearrangement episode in ``DSGWorld-v0`` on the bundled world and write a PNG.
+"""The demo (``dsg-demo``, :mod:`dsg_gym.cli.demo`): a strip of frames written as a PNG.
 
-    python -m dsg_gym.demo [--out out/demo.png] [--size 128] [--procedural]
-
-Runs the scripted expert policy from a seeded reset to its goal, keeps every few frames, and
-writes a strip of RGB observations (top) and object masks (bottom); prints the steps/s, whether
-the goal was reached and where the PNG went. ``--procedural`` instead renders a small procedural
-splat scene (a checkered table and three objects from four cameras, RGB plus one-hot object ids
-in one ``rasterize`` pass) without any world file.
+:func:`run_env_demo` runs the scripted expert policy in ``DSGWorld-v0`` on the bundled world from a seeded
+reset to its goal and writes a strip of RGB observations (top) and object masks (bottom);
+:func:`run_procedural_demo` renders a small procedural splat scene (a checkered table and three objects seen
+from an orbit of cameras, RGB plus one-hot object ids in one ``rasterize`` pass) without any world file.
+Both print what they did and return the PNG's path.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
-from dsg_gym.geometry import intrinsics_from_fov, look_at_viewmat
-from dsg_gym.splat import rasterize
+from dsg_gym.cameras import orbit_eyes
+from dsg_gym.io.atomic import atomic_path
+
+if TYPE_CHECKING:
+    import torch
+
+__all__ = ["build_scene", "orbit_cameras", "run_env_demo", "run_procedural_demo"]
 
 PALETTE = np.array([[40, 40, 40], [230, 80, 60], [70, 170, 90], [70, 110, 230]], dtype=np.uint8)
 
 
 def _table(g: torch.Generator, n_side: int = 48):
+    import torch
+
     xs = torch.linspace(-0.4, 0.4, n_side)
     ys = torch.linspace(-0.3, 0.3, int(n_side * 0.75))
     X, Y = torch.meshgrid(xs, ys, indexing="ij")
@@ -40,6 +44,8 @@ def _table(g: torch.Generator, n_side: int = 48):
 
 
 def _object(g: torch.Generator, kind: str, centre, size: float, rgb, label: int, n: int = 900):
+    import torch
+
     u = torch.rand(n, 3, generator=g) * 2 - 1
     if kind == "box":
         face = torch.randint(0, 3, (n,), generator=g)
@@ -59,6 +65,8 @@ def _object(g: torch.Generator, kind: str, centre, size: float, rgb, label: int,
 
 def build_scene(seed: int = 0):
     """Means, quats, scales, opacities and colours (RGB + 4 one-hot ids) of the demo scene."""
+    import torch
+
     g = torch.Generator().manual_seed(seed)
     parts = [_table(g),
              _object(g, "box", (-0.15, -0.05, 0.0), 0.05, (0.9, 0.3, 0.25), 1),
@@ -76,26 +84,33 @@ def build_scene(seed: int = 0):
 
 
 def orbit_cameras(n: int, size: int, radius: float = 0.75, height: float = 0.45):
-    eyes = [torch.tensor([radius * math.cos(a), radius * math.sin(a), height])
-            for a in np.linspace(0, 2 * math.pi, n, endpoint=False) + 0.3]
-    viewmats = look_at_viewmat(torch.stack(eyes), torch.zeros(n, 3), torch.tensor([0.0, 0.0, 1.0]).expand(n, 3))
-    Ks = intrinsics_from_fov(math.radians(50.0), size, size).expand(n, 3, 3)
+    """``(viewmats [n,4,4], Ks [n,3,3])`` float32 tensors: ``n`` cameras evenly on a circle of ``radius``
+    about the z axis, ``height`` above the table, the first at 0.3 rad from +x, all looking at the origin;
+    50 degree vertical field of view, ``size x size`` pixels."""
+    import torch
+
+    from dsg_gym.geometry import intrinsics_from_fov, look_at_viewmat
+
+    eyes = orbit_eyes((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), math.hypot(radius, height), (math.atan2(height, radius),),
+                      n, azimuth0=0.3 - 0.5 * math.pi)
+    viewmats = look_at_viewmat(torch.from_numpy(eyes).float(), torch.zeros(n, 3),
+                               torch.tensor([0.0, 0.0, 1.0]).expand(n, 3))
+    Ks = intrinsics_from_fov(math.radians(50.0), size, size).expand(n, 3, 3)  # noqa: N806
     return viewmats.float().contiguous(), Ks.float().contiguous()
 
 
-def _save_png(image: np.ndarray, out: str) -> Path:
+def _save_png(image: np.ndarray, out: str | os.PathLike) -> Path:
     from PIL import Image
 
     path = Path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    Image.fromarray(image).save(tmp, format="PNG")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        Image.fromarray(image).save(tmp, format="PNG")
     return path
 
 
-def run_env_demo(out: str, size: int, seed: int, frames: int = 6) -> Path:
-    """Expert episode on the bundled world; a strip of RGB and mask frames."""
+def run_env_demo(out: str | os.PathLike, size: int, seed: int, frames: int = 6) -> Path:
+    """Expert episode on the bundled world (``size x size`` observations, reset seed ``seed``); a strip of
+    ``frames`` RGB and mask frames written to ``out``. Prints the steps/s and whether the goal was reached."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     import gymnasium as gym
 
@@ -127,35 +142,26 @@ def run_env_demo(out: str, size: int, seed: int, frames: int = 6) -> Path:
     return path
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="out/demo.png", help="PNG path (default out/demo.png)")
-    ap.add_argument("--size", type=int, default=128, help="image width = height in pixels")
-    ap.add_argument("--seed", type=int, default=0, help="reset seed of the episode")
-    ap.add_argument("--procedural", action="store_true", help="render the procedural scene instead")
-    ap.add_argument("--views", type=int, default=4, help="cameras on the orbit (--procedural)")
-    args = ap.parse_args(argv)
-    if not args.procedural:
-        run_env_demo(args.out, args.size, args.seed)
-        return 0
+def run_procedural_demo(out: str | os.PathLike, size: int, views: int = 4) -> Path:
+    """Render the procedural scene (:func:`build_scene`) from ``views`` orbit cameras at ``size x size``; a
+    strip of RGB frames over their object ids, written to ``out``. Prints the render time."""
+    import torch
+
+    from dsg_gym.splat import rasterize
+
     means, quats, scales, opacities, colors = build_scene()
-    viewmats, Ks = orbit_cameras(args.views, args.size)
+    viewmats, Ks = orbit_cameras(views, size)  # noqa: N806
     bg = torch.tensor([0.85, 0.88, 0.92, 1.0, 0.0, 0.0, 0.0])
-    rasterize(means, quats, scales, opacities, colors, viewmats, Ks, args.size, args.size, backgrounds=bg)
+    rasterize(means, quats, scales, opacities, colors, viewmats, Ks, size, size, backgrounds=bg)  # warm-up
     t0 = time.perf_counter()
-    out, alpha, meta = rasterize(means, quats, scales, opacities, colors, viewmats, Ks, args.size, args.size,
-                                 backgrounds=bg)
+    image, _, _ = rasterize(means, quats, scales, opacities, colors, viewmats, Ks, size, size, backgrounds=bg)
     ms = (time.perf_counter() - t0) * 1e3
-    rgb = (out[..., :3].clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-    ids = out[..., 3:].argmax(-1).numpy()
+    rgb = (image[..., :3].clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+    ids = image[..., 3:].argmax(-1).numpy()
     top = np.concatenate(list(rgb), axis=1)
     bottom = np.concatenate(list(PALETTE[ids]), axis=1)
-    path = _save_png(np.concatenate([top, bottom], axis=0), args.out)
-    print(f"rendered {means.shape[0]} Gaussians into {args.views} views of {args.size}x{args.size} "
+    path = _save_png(np.concatenate([top, bottom], axis=0), out)
+    print(f"rendered {means.shape[0]} Gaussians into {views} views of {size}x{size} "
           f"(RGB + 4 id channels) in {ms:.1f} ms")
     print(f"wrote {path.resolve()}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    return path

@@ -9,7 +9,7 @@ Python::
     export_world_ply(world_model, "ply_dir")                    # background.ply + <name>.ply (object frames)
     export_world_ply(world_model, "ply_dir", poses="state1")    # objects placed in the world frame
 
-Command line (``dsg-export``)::
+Command line (``dsg-export``, :mod:`dsg_gym.cli.export`)::
 
     dsg-export WORLD --out stage.usdc|.usda [--poses state1|state2|FILE] [--episode FILE]
     dsg-export WORLD --out DIR --ply [--poses ...]
@@ -21,11 +21,9 @@ Episode files: see :mod:`dsg_gym.envs.recording` (``RecordEpisode``, ``save_epis
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +31,7 @@ import numpy as np
 from .poses import as_poses7, matrix_to_pose7, pose7_to_matrix
 from .world_model import WorldModel, transform_gaussians
 
-__all__ = ["export_world_usd", "export_world_ply", "load_world_model", "resolve_poses", "load_poses_file",
-           "main"]
+__all__ = ["export_world_usd", "export_world_ply", "load_world_model", "resolve_poses", "load_poses_file"]
 
 POSE_FILE_SUFFIXES = (".npy", ".npz", ".json")
 
@@ -198,48 +195,3 @@ def export_world_ply(world, out_dir, *, poses=None) -> list[Path]:
         g = dataclasses.replace(g, labels=np.full(g.num, oid, np.int32))
         paths.append(write_ply(out / f"{_file_stem(name, used, oid)}.ply", g, labels=True))
     return paths
-
-
-# ----------------------------------------------------------------------------------------- CLI
-def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="dsg-export",
-        description="Export a DSG world file to a USD stage (.usdc binary, default; .usda text), optionally "
-        "with a recorded episode as time-sampled object poses, or (--ply) to standard 3DGS PLY files.",
-    )
-    ap.add_argument("world", help="world file (.dsgworld)")
-    ap.add_argument("--out", required=True,
-                    help="stage path (.usdc/.usda; .usdc appended when there is no suffix), "
-                    "or with --ply a folder")
-    ap.add_argument("--poses", default=None,
-                    help="object poses: a state name of the world (state1, state2, ...) or a .npy/.npz/.json "
-                    "file with [K,4,4] or [K,7] poses (default: the reference state, or the episode's "
-                    "first step)")
-    ap.add_argument("--episode", default=None,
-                    help=".npz episode file (RecordEpisode.save): writes an animated stage")
-    ap.add_argument("--ply", action="store_true",
-                    help="write background.ply + <object>.ply (3DGS Inria layout) into the --out folder; "
-                    "objects in their own frames unless --poses is given")
-    return ap
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = _parser()
-    args = ap.parse_args(argv)
-    try:
-        if args.ply:
-            if args.episode is not None:
-                ap.error("--episode needs a USD output (drop --ply)")
-            if Path(args.out).suffix in (".usdc", ".usda"):
-                ap.error(f"--ply writes a folder of .ply files; --out {args.out!r} looks like a USD stage")
-            for p in export_world_ply(args.world, args.out, poses=args.poses):
-                print(p)
-        else:
-            print(export_world_usd(args.world, args.out, poses=args.poses, episode=args.episode))
-    except (ValueError, OSError) as e:
-        ap.error(str(e))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -171,7 +171,6 @@ class PhysicsProxy:
         m.dof_damping[:] = 0.05
         self.data = mujoco.MjData(m)
         self._geom = np.array([m.geom(f"object{k}").id for k in range(self.num_objects)], dtype=np.int64)
-        self._table_geoms = {m.geom("table").id, m.geom("floor").id}
         self._obj_of_geom = {int(g): k for k, g in enumerate(self._geom)}
         self._body = np.array([m.body(f"object{k}").id for k in range(self.num_objects)], dtype=np.int64)
         self._qadr = np.array([m.jnt_qposadr[m.body_jntadr[b]] for b in self._body], dtype=np.int64)
@@ -180,8 +179,6 @@ class PhysicsProxy:
         self._hull_pts = np.ascontiguousarray(np.concatenate(self.hulls), np.float64)
         self._hull_off = np.concatenate([[0], np.cumsum([len(h) for h in self.hulls])]).astype(np.int64)
         self._boxes = np.empty((self.num_objects, 4))
-        # MuJoCo re-centres a mesh at its centre of mass: body frame = object frame, geom offset in geom_pos
-        self._fromto = np.zeros(6)
 
     # ------------------------------------------------------------------ state
     def _set(self, p7: np.ndarray, full: bool = True) -> None:

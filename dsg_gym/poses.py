@@ -1,10 +1,12 @@
-"""Rigid poses in float64 numpy for the runtime (the environment's hot path avoids torch).
+"""Rigid poses and quaternions in float64 numpy: the one numpy implementation (the environment's hot path,
+world files and USD export avoid torch).
 
 Same conventions as :mod:`dsg_gym.geometry` (which is the batched torch version used in training): quaternions
 ``w, x, y, z`` (Hamilton, ``quat_multiply(a, b)`` applies ``b`` first), poses are 7-vectors
 ``(x, y, z, qw, qx, qy, qz)`` taking object-frame points to the world, 4x4 matrices ``[[R, t], [0, 1]]``.
 Every function that reads a quaternion renormalises it; returned quaternions have ``w >= 0``. All functions
-accept any leading batch dimensions.
+accept any leading batch dimensions. :func:`check_rigid` validates ``[..., 4, 4]`` transforms and
+:func:`rigid_inverse` inverts them.
 """
 
 from __future__ import annotations
@@ -14,19 +16,25 @@ import math
 import numpy as np
 
 __all__ = [
+    "RIGID_TOL",
     "as_poses7",
     "axis_angle_to_quat",
+    "check_rigid",
     "matrix_to_pose7",
     "pose7_to_matrix",
     "quat_angle",
+    "quat_hemisphere_continuous",
     "quat_multiply",
     "quat_normalize",
     "quat_to_rotmat",
+    "rigid_inverse",
     "rotmat_to_quat",
-    "yaw_of_quat",
     "yaw_to_quat",
 ]
 
+
+#: tolerance of :func:`check_rigid` (last row, orthonormality and determinant of the rotation)
+RIGID_TOL = 1e-5
 
 #: batches of at most this many quaternions (``[n, 4]``) take a scalar path: Python floats, the same IEEE
 #: operations in the same order as the numpy code (identical results, without numpy's per-call overhead)
@@ -175,12 +183,6 @@ def yaw_to_quat(yaw: np.ndarray) -> np.ndarray:
     return quat_normalize(q)
 
 
-def yaw_of_quat(q: np.ndarray) -> np.ndarray:
-    """Heading (radians) of the rotated x axis projected on the xy plane, ``[..., 4] -> [...]``."""
-    r = quat_to_rotmat(q)
-    return np.arctan2(r[..., 1, 0], r[..., 0, 0])
-
-
 def quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle (radians, in [0, pi]) of the rotation taking ``b`` to ``a``."""
     d = np.abs(np.sum(quat_normalize(a) * quat_normalize(b), axis=-1))
@@ -227,3 +229,52 @@ def as_poses7(value, k: int, name: str = "poses") -> np.ndarray:
     except ValueError:
         raise ValueError(f"{name}: a quaternion is zero") from None
     return np.concatenate([arr[:, :3], q], axis=1)
+
+
+def quat_hemisphere_continuous(q: np.ndarray) -> np.ndarray:
+    """Quaternions ``[T, ..., 4]`` with signs flipped along axis 0 so consecutive samples have a
+    non-negative dot product (interpolation between samples then takes the short way)."""
+    q = np.array(q, dtype=np.float64, copy=True)
+    for t in range(1, q.shape[0]):
+        flip = (q[t] * q[t - 1]).sum(axis=-1, keepdims=True) < 0
+        q[t] = np.where(flip, -q[t], q[t])
+    return q
+
+
+def check_rigid(name: str, mat, tol: float = RIGID_TOL) -> np.ndarray:
+    """``mat`` as float64 ``[..., 4, 4]`` after checking it is a finite rigid transform.
+
+    Rigid: last row ``[0, 0, 0, 1]``, ``R^T R = I`` and ``det R = +1`` within ``tol``.
+    Raises ``ValueError`` naming ``name`` (and the first bad index for batches).
+    """
+    arr = np.asarray(mat)
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"{name}: expected a real numeric array, got dtype {arr.dtype}")
+    arr = np.asarray(arr, dtype=np.float64)
+    if arr.ndim < 2 or arr.shape[-2:] != (4, 4):
+        raise ValueError(f"{name}: expected shape [..., 4, 4], got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name}: contains non-finite values")
+    r = arr[..., :3, :3]
+    err_row = np.abs(arr[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=-1)
+    err_orth = np.abs(np.swapaxes(r, -1, -2) @ r - np.eye(3)).max(axis=(-1, -2))
+    det = np.linalg.det(r)
+    bad = (err_row > tol) | (err_orth > tol) | (np.abs(det - 1.0) > tol)
+    if bad.any():
+        where = "" if arr.ndim == 2 else f" at index {tuple(int(i) for i in np.argwhere(bad)[0])}"
+        raise ValueError(
+            f"{name}: not a rigid transform{where} (last row must be [0, 0, 0, 1], rotation "
+            f"orthonormal with det +1, tolerance {tol})"
+        )
+    return arr
+
+
+def rigid_inverse(mat: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms ``[..., 4, 4]``: ``[[R^T, -R^T t], [0, 1]]`` (float64)."""
+    mat = np.asarray(mat, dtype=np.float64)
+    out = np.zeros_like(mat)
+    rt = np.swapaxes(mat[..., :3, :3], -1, -2)
+    out[..., :3, :3] = rt
+    out[..., :3, 3] = -(rt @ mat[..., :3, 3:4])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out

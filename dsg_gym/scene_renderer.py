@@ -22,10 +22,10 @@ import numba as nb
 import numpy as np
 
 from .gaussians import GaussianSet
-from .splat import _numba_bins as Bn
-from .splat import _numba_incremental as I
-from .splat import _numba_project as P
-from .splat import _numba_raster as R
+from .splat import numba_bins as binning
+from .splat import numba_incremental as incr
+from .splat import numba_project as projection
+from .splat import numba_raster as raster
 from .splat.threads import min_parallel_work, parallel_allowed
 from .splat_options import DEFAULT_EPS2D, check_splat_options
 
@@ -48,7 +48,7 @@ class RenderSettings:
     sh_degree: int | None = None
 
     def __post_init__(self):
-        R.check_thresholds(float(self.alpha_min), float(self.t_min))
+        raster.check_thresholds(float(self.alpha_min), float(self.t_min))
         d = self.sh_degree
         if d is not None and (isinstance(d, bool) or not isinstance(d, (int, np.integer)) or not 0 <= d <= 3):
             raise ValueError(f"sh_degree must be None or an integer in 0..3, got {d!r}")
@@ -78,11 +78,13 @@ class _Projected:
 
 
 def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far,
-             alpha_min: float = R.ALPHA_MIN, eps2d: float = P.BLUR, parallel: bool = True) -> _Projected:
+             alpha_min: float = raster.ALPHA_MIN, eps2d: float = projection.BLUR,
+             parallel: bool = True) -> _Projected:
     V, n = viewmats.shape[0], means.shape[0]
     out = _Projected(np.empty((V, n, 2), np.float32), np.empty((V, n, 3), np.float32),
                      np.empty((V, n), np.float32), np.empty((V, n, 2), np.int32), np.empty((V, n, 4), np.int32))
-    kernel = P.project_forward if parallel and V * n > min_parallel_work() else P.project_forward_serial
+    serial = not (parallel and V * n > min_parallel_work())
+    kernel = projection.project_forward_serial if serial else projection.project_forward
     kernel(means, quats, scales, opacities[None], viewmats, Ks, float(width), float(height),
            float(near), float(far), out.means2d, out.conics, out.depths, out.radii, out.rects, float(alpha_min),
            float(eps2d))
@@ -92,14 +94,15 @@ def _project(means, quats, scales, opacities, viewmats, Ks, width, height, near,
 def _antialias(conics: np.ndarray, opacities: np.ndarray, eps2d: float, parallel: bool = True) -> np.ndarray:
     """Per-camera opacities ``[V, n]`` after the Mip filter (one kernel for every renderer)."""
     out = np.empty(conics.shape[:2], np.float32)
-    kernel = P.antialias_opacities if parallel and out.size > min_parallel_work() else P.antialias_opacities_serial
+    serial = not (parallel and out.size > min_parallel_work())
+    kernel = projection.antialias_opacities_serial if serial else projection.antialias_opacities
     kernel(conics, opacities, out, float(eps2d))
     return out
 
 
 def _bins(proj: _Projected, tiles_x: int, tiles_y: int):
-    order, counts = Bn.depth_order(proj.depths.view(np.uint32), proj.rects)
-    offsets, gauss, _, _ = Bn.bin_gaussians(proj.rects, order, counts, tiles_x, tiles_y)
+    order, counts = binning.depth_order(proj.depths.view(np.uint32), proj.rects)
+    offsets, gauss, _, _ = binning.bin_gaussians(proj.rects, order, counts, tiles_x, tiles_y)
     return offsets, gauss
 
 
@@ -109,11 +112,11 @@ def _rigid(poses, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     poses = np.asarray(poses, dtype=np.float64)
     q, Rm, t = np.empty((k, 4)), np.empty((k, 3, 3)), np.empty((k, 3))
     if poses.shape == (k, 7):
-        bad = I.rigid_from_pose7(np.ascontiguousarray(poses), q, Rm, t)
+        bad = incr.rigid_from_pose7(np.ascontiguousarray(poses), q, Rm, t)
         if bad >= 0:
             raise ValueError(f"poses: object {bad} has a non-finite position or a zero/non-finite quaternion")
     elif poses.shape == (k, 4, 4):
-        bad = I.rigid_from_matrices(np.ascontiguousarray(poses), q, Rm, t)
+        bad = incr.rigid_from_matrices(np.ascontiguousarray(poses), q, Rm, t)
         if bad >= 0:
             if not np.isfinite(poses[bad]).all():
                 raise ValueError(f"poses has a non-finite value at object {bad}")
@@ -148,14 +151,14 @@ class SceneRenderer:
 
     def __init__(self, background: GaussianSet, objects: Sequence[GaussianSet], viewmats, Ks, width: int,
                  height: int, background_color=(0.0, 0.0, 0.0), near_plane: float = 0.01,
-                 far_plane: float = 1e10, alpha_min: float = R.ALPHA_MIN, t_min: float = R.T_MIN,
+                 far_plane: float = 1e10, alpha_min: float = raster.ALPHA_MIN, t_min: float = raster.T_MIN,
                  sh_degree: int | None = None, rasterize_mode: str = "classic", eps2d: float = DEFAULT_EPS2D,
                  parallel: bool | None = None):
         self.rasterize_mode, self.eps2d = check_splat_options(rasterize_mode, eps2d)
         if parallel not in (None, True, False):
             raise ValueError(f"parallel must be None, True or False, got {parallel!r}")
         self.parallel = parallel
-        self._consts = R.make_consts(np.float32, alpha_min, t_min)
+        self._consts = raster.make_consts(np.float32, alpha_min, t_min)
         self.alpha_min, self.t_min = float(alpha_min), float(t_min)
         self.background = background
         self.objects = list(objects)
@@ -202,8 +205,8 @@ class SceneRenderer:
         self.viewmats, self.Ks = np.ascontiguousarray(viewmats), np.ascontiguousarray(Ks)
         self.width, self.height = int(width), int(height)
         self.V = viewmats.shape[0]
-        self.tiles_x = (self.width + R.TILE - 1) // R.TILE
-        self.tiles_y = (self.height + R.TILE - 1) // R.TILE
+        self.tiles_x = (self.width + raster.TILE - 1) // raster.TILE
+        self.tiles_y = (self.height + raster.TILE - 1) // raster.TILE
         self._campos = np.stack([-(V[:3, :3].T @ V[:3, 3]) for V in self.viewmats])
         bg = self.background
         par = parallel_allowed(self.parallel)
@@ -220,7 +223,7 @@ class SceneRenderer:
         m = min(sh.shape[1], bg.sh.shape[1])
         sh[:, :m] = bg.sh[:, :m]
         for v in range(self.V):
-            I.sh_to_rgb(bg.means, np.eye(3), self._campos[v], sh, self._sh_degree, self._bg_rgb[v])
+            incr.sh_to_rgb(bg.means, np.eye(3), self._campos[v], sh, self._sh_degree, self._bg_rgb[v])
         self._state = None  # (channels key, poses, object arrays, buffers)
         self._bg_lists = {}  # layout -> the background's packed tile lists
 
@@ -235,11 +238,11 @@ class SceneRenderer:
         return (d, *offs)
 
     def _colors(self, layout, rgb_vals, labels, depths) -> np.ndarray:
-        """``[V, n, D]`` per-Gaussian channels (:func:`_numba_incremental.fill_colors` per camera) from
+        """``[V, n, D]`` per-Gaussian channels (:func:`numba_incremental.fill_colors` per camera) from
         rgb_vals [V, n, 3], labels [n] and depths [V, n]."""
         col = np.empty((self.V, labels.shape[0], max(layout[0], 1)), np.float32)
         for v in range(self.V):
-            I.fill_colors(rgb_vals[v], labels, depths[v], layout[1], layout[2], layout[3], col[v])
+            incr.fill_colors(rgb_vals[v], labels, depths[v], layout[1], layout[2], layout[3], col[v])
         return col
 
     def _update_objects(self, st, poses, moved, layout, dirty, par: bool) -> None:
@@ -253,7 +256,7 @@ class SceneRenderer:
             if dirty is not None:
                 dirty |= tmask
             t, q, Rm = t_all[k], q_all[k], R_all[k]
-            I.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
+            incr.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
                               st["quats"][s:e])
             pr = _project(st["means"][s:e], st["quats"][s:e], self._obj_scales[s:e], self._obj_opac[s:e],
                           self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min,
@@ -265,11 +268,12 @@ class SceneRenderer:
             rgb = self._rgb_scratch[:e - s]
             for v in range(self.V):
                 if layout[1] >= 0:
-                    I.sh_to_rgb(st["means"][s:e], Rm, self._campos[v], self._obj_sh[s:e], self._sh_degree, rgb)
-                I.fill_colors(rgb, self._obj_label[s:e], pr.depths[v], layout[1], layout[2], layout[3],
+                    incr.sh_to_rgb(st["means"][s:e], Rm, self._campos[v], self._obj_sh[s:e], self._sh_degree,
+                                   rgb)
+                incr.fill_colors(rgb, self._obj_label[s:e], pr.depths[v], layout[1], layout[2], layout[3],
                               st["colors"][v, s:e])
             tmask[:] = False
-            I.mark_tiles(pr.rects, self.tiles_x, self.tiles_y, tmask)
+            incr.mark_tiles(pr.rects, self.tiles_x, tmask)
             if dirty is not None:
                 dirty |= tmask
 
@@ -280,7 +284,7 @@ class SceneRenderer:
         poses = _rigid(poses, self.K)
         layout = self._channels(rgb, mask, depth)
         par = parallel_allowed(self.parallel)
-        composite = I.composite_merged if par else I.composite_merged_serial
+        composite = incr.composite_merged if par else incr.composite_merged_serial
         st = self._state
         full = st is None or st["layout"] != layout or not incremental
         if full:
@@ -319,12 +323,13 @@ class SceneRenderer:
                 b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
             else:  # only the recomposited tiles' lists are read
                 active = (st["tile_masks"] & dirty).reshape(self.K, -1).any(axis=1)
-                b_off, b_gauss = I.bin_tiles(st["proj"].depths.view(np.uint32), st["proj"].rects, dirty,
+                b_off, b_gauss = incr.bin_tiles(st["proj"].depths.view(np.uint32), st["proj"].rects, dirty,
                                              self.tiles_x, self.tiles_y, self._slices, active)
             b = st["proj"]
             # incremental: pixels that no object reaches come from the background-only render
             cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
-            plan = I.plan_tiles(tiles, self._bg_bins[0], b_off, bool(incremental), nb.get_num_threads() if par else 1)
+            threads = nb.get_num_threads() if par else 1
+            plan = incr.plan_tiles(tiles, self._bg_bins[0], b_off, bool(incremental), threads)
             composite(*plan, st["bg_rec"], st["bg_rect"], st["bg_rows"], self._bg_bins[0], b.means2d, b.conics,
                       st["opac"], st["colors"], b.rects, b.depths, b_off, b_gauss, self.tiles_x, self.tiles_y, self.width,
                       self.height, self._consts, bool(incremental), *cache, st["out"], st["T"])
@@ -334,14 +339,14 @@ class SceneRenderer:
 
     def _background_lists(self, layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The background's tile lists as records with ``layout``'s channels, in compositing order
-        (:func:`_numba_incremental.pack_lists`); built once per layout and camera set."""
+        (:func:`numba_incremental.pack_lists`); built once per layout and camera set."""
         if layout not in self._bg_lists:
             bg_colors = self._colors(layout, self._bg_rgb, np.zeros(self.background.num, np.int64), self._bg.depths)
             a, (off, gauss) = self._bg, self._bg_bins
             rec = np.empty((gauss.size, 8 + bg_colors.shape[2]), np.float32)
             rect = np.empty((gauss.size, 4), np.int32)
-            rows = np.empty((gauss.size, R.TILE), np.uint16)
-            I.pack_lists(a.means2d, a.conics, self._bg_opac, bg_colors, a.rects, a.depths, off, gauss, self.tiles_x,
+            rows = np.empty((gauss.size, raster.TILE), np.uint16)
+            incr.pack_lists(a.means2d, a.conics, self._bg_opac, bg_colors, a.rects, a.depths, off, gauss, self.tiles_x,
                          self.tiles_y, self.width, self.height, self._consts, rec, rect, rows)
             self._bg_lists = {layout: (rec, rect, rows)}  # one layout at a time (they are large)
         return self._bg_lists[layout]
@@ -353,7 +358,7 @@ class SceneRenderer:
         st["bg_T"] = np.ones_like(st["T"])
         b = st["proj"]
         none = np.zeros(tiles.size + 1, np.int64)
-        plan = I.plan_tiles(tiles, self._bg_bins[0], none, False, nb.get_num_threads() if par else 1)
+        plan = incr.plan_tiles(tiles, self._bg_bins[0], none, False, nb.get_num_threads() if par else 1)
         composite(*plan, st["bg_rec"], st["bg_rect"], st["bg_rows"], self._bg_bins[0], b.means2d, b.conics,
                   st["opac"], st["colors"], b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width,
                   self.height, self._consts, False, st["bg_out"], st["bg_T"], st["bg_out"], st["bg_T"])
@@ -373,7 +378,7 @@ class SceneRenderer:
             st["mask"] = np.zeros(shape, np.uint8)
             st["depth"] = np.zeros(shape, np.float32)
             st["alpha"] = np.zeros(shape, np.float32)
-        I.finish_tiles(tiles, self.tiles_x, self.tiles_y, self.width, self.height, st["out"], st["T"],
+        incr.finish_tiles(tiles, self.tiles_x, self.tiles_y, self.width, self.height, st["out"], st["T"],
                        self.background_color, o_rgb, o_mask, self.K + 1, o_depth, st["rgb"], st["mask"],
                        st["depth"], st["alpha"])
         return RenderOutput(rgb=st["rgb"].copy() if o_rgb >= 0 else None,

@@ -22,6 +22,10 @@ camera sizes, units, ``metadata`` (training config, source, and the renderer opt
 with: ``rasterize_mode`` "classic" or "antialiased" and ``eps2d``, see :func:`dsg_gym.splat.rasterize` and
 :attr:`World.splat_options`; absent: "classic", 0.3) and a SHA-256 of the tensor bytes, so a truncated or
 altered file is refused with :class:`WorldFormatError`, as is an unknown format version.
+
+Reading: :func:`load_world` / :func:`parse_world_bytes`. Writing: :func:`encode_world` (the same world always
+gives the same bytes) and :func:`write_world` (atomic); :func:`build_world` splits trained Gaussians by class
+into background and objects.
 """
 
 from __future__ import annotations
@@ -37,8 +41,11 @@ from types import MappingProxyType
 from typing import Any, NamedTuple
 
 import numpy as np
+from safetensors.numpy import save as st_save
 
+from .cameras import Cameras
 from .gaussians import GaussianSet
+from .io.atomic import atomic_write_bytes
 from .poses import quat_multiply, quat_normalize, rotmat_to_quat
 from .sh_basis import rotate_sh
 from .splat_options import DEFAULT_EPS2D, check_splat_options
@@ -47,14 +54,16 @@ __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "GAUSSIAN_FIELDS",
-    "Cameras",
     "World",
     "WorldFormatError",
     "WorldObject",
+    "build_world",
+    "encode_world",
     "load_world",
     "parse_world_bytes",
     "splat_options",
     "transform_gaussians",
+    "write_world",
 ]
 
 FORMAT_NAME = "dsg-world"
@@ -74,20 +83,10 @@ class WorldObject(NamedTuple):
 
 
 @dataclass(frozen=True, eq=False)
-class Cameras:
-    viewmats: np.ndarray  # [V,4,4] float32 world-to-camera (OpenCV)
-    Ks: np.ndarray  # [V,3,3] float32
-    width: int
-    height: int
-
-    def __len__(self) -> int:
-        return int(self.viewmats.shape[0])
-
-
-@dataclass(frozen=True, eq=False)
 class World:
     """A loaded world. ``objects``: ``{id: WorldObject(name, GaussianSet in object frame)}``; ``poses``:
-    ``{state: [K,4,4] float64}`` (rows follow ``object_ids``); ``cameras``: ``{state: Cameras}``."""
+    ``{state: [K,4,4] float64}`` (rows follow ``object_ids``); ``cameras``: ``{state: Cameras}``
+    (:class:`dsg_gym.cameras.Cameras`)."""
 
     background: GaussianSet
     objects: Mapping[int, WorldObject]
@@ -284,10 +283,123 @@ def _build(arrays: dict[str, np.ndarray], doc: dict, version: int) -> World:
 
 
 def load_world(path: str | Path) -> World:
-    """Read a world file written by ``train_world`` (``dsg-train``)."""
+    """Read a world file (written by :func:`write_world`, e.g. by ``dsg-train``)."""
     p = Path(path)
     try:
         data = p.read_bytes()
     except OSError as e:
         raise WorldFormatError(f"{p}: cannot read world file ({e})") from e
     return parse_world_bytes(data, str(p))
+
+
+# ----------------------------------------------------------------------------------- writing
+def _add_set(arrays: dict[str, np.ndarray], prefix: str, g: GaussianSet) -> None:
+    for f in GAUSSIAN_FIELDS:
+        arrays[f"{prefix}/{f}"] = np.ascontiguousarray(getattr(g, f))
+    for f in OPTIONAL_FIELDS:
+        v = getattr(g, f)
+        if v is not None:
+            arrays[f"{prefix}/{f}"] = np.ascontiguousarray(v)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, (dict, MappingProxyType)):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def encode_world(world: World) -> bytes:
+    """The bytes of a world file (deterministic for a given world)."""
+    arrays: dict[str, np.ndarray] = {}
+    _add_set(arrays, "gaussians/background", world.background)
+    for oid in world.object_ids:
+        _add_set(arrays, f"gaussians/object_{oid}", world.objects[oid].gaussians)
+    for s, P in world.poses.items():
+        if "/" in s:
+            raise ValueError(f"state name {s!r} must not contain '/'")
+        arrays[f"poses/{s}"] = np.ascontiguousarray(P, dtype=np.float64)
+    for s, cam in world.cameras.items():
+        arrays[f"cameras/{s}/viewmats"] = np.ascontiguousarray(cam.viewmats, dtype=np.float32)
+        arrays[f"cameras/{s}/Ks"] = np.ascontiguousarray(cam.Ks, dtype=np.float32)
+    arrays["classifier/weight"] = np.ascontiguousarray(world.classifier_weight, dtype=np.float32)
+    arrays["classifier/bias"] = np.ascontiguousarray(world.classifier_bias, dtype=np.float32)
+    doc = {
+        "objects": [
+            {"id": oid, "name": world.objects[oid].name, "class": i + 1}
+            for i, oid in enumerate(world.object_ids)
+        ],
+        "num_classes": world.num_objects + 1,
+        "states": list(world.poses),
+        "cameras": {
+            s: {"width": c.width, "height": c.height, "count": len(c)} for s, c in world.cameras.items()
+        },
+        "units": world.units,
+        "metadata": _jsonable(world.metadata),
+    }
+
+    def encode(d: dict) -> bytes:
+        full = {"format": FORMAT_NAME, "format_version": FORMAT_VERSION, **d}
+        return st_save(arrays, metadata={META_KEY: json.dumps(full)})
+
+    probe = encode({**doc, "sha256": ""})
+    (hlen,) = struct.unpack("<Q", probe[:8])
+    digest = hashlib.sha256(probe[8 + hlen :]).hexdigest()
+    return encode({**doc, "sha256": digest})
+
+
+def write_world(path: str | Path, world: World) -> Path:
+    """Encode ``world`` and write it atomically (:mod:`dsg_gym.io.atomic`) to ``path``; returns the path."""
+    return atomic_write_bytes(path, encode_world(world))
+
+
+def build_world(
+    gaussians: GaussianSet,
+    classes: np.ndarray,
+    object_ids: tuple[int, ...],
+    object_names: tuple[str, ...],
+    poses: dict[str, np.ndarray],
+    reference_state: str,
+    cameras: dict[str, Cameras],
+    classifier_weight: np.ndarray,
+    classifier_bias: np.ndarray,
+    units: str,
+    metadata: dict[str, Any],
+) -> World:
+    """Split trained Gaussians (world frame of ``reference_state``) by class: class 0 is background, class
+    ``i >= 1`` is object ``object_ids[i-1]``, moved into its own frame by ``inv(poses[reference_state][i-1])``.
+    ``labels`` of every Gaussian become its object id (0 for the background)."""
+    classes = np.asarray(classes, dtype=np.int64)
+    ids = np.array((0,) + tuple(object_ids), dtype=np.int32)
+    g = GaussianSet(
+        gaussians.means,
+        gaussians.quats,
+        gaussians.scales,
+        gaussians.opacities,
+        gaussians.sh,
+        gaussians.features,
+        ids[classes],
+        gaussians.opacity_logits,
+        gaussians.log_scales,
+    )
+    ref = np.asarray(poses[reference_state], dtype=np.float64)
+    objects = {}
+    for i, (oid, name) in enumerate(zip(object_ids, object_names)):
+        sub = g.subset(classes == i + 1)
+        objects[int(oid)] = WorldObject(name, transform_gaussians(sub, np.linalg.inv(ref[i])))
+    return World(
+        background=g.subset(classes == 0),
+        objects=MappingProxyType(objects),
+        poses=MappingProxyType({s: np.asarray(P, dtype=np.float64) for s, P in poses.items()}),
+        cameras=MappingProxyType(dict(cameras)),
+        classifier_weight=np.asarray(classifier_weight, dtype=np.float32),
+        classifier_bias=np.asarray(classifier_bias, dtype=np.float32),
+        metadata=MappingProxyType({"reference_state": reference_state, **metadata}),
+        units=units,
+        format_version=FORMAT_VERSION,
+    )

@@ -17,12 +17,13 @@ from typing import Any
 
 import numpy as np
 
+from .cameras import Cameras
 from .gaussians import GaussianSet
 from .poses import as_poses7, pose7_to_matrix
-from .world import splat_options
+from .world import load_world, splat_options
 from .world import transform_gaussians as _transform_matrix
 
-__all__ = ["Cameras", "TableBounds", "WorldModel", "WorldModelError"]
+__all__ = ["TableBounds", "WorldModel", "WorldModelError"]
 
 
 class WorldModelError(ValueError):
@@ -51,44 +52,6 @@ class TableBounds:
     @property
     def size(self) -> tuple[float, float]:
         return (self.xmax - self.xmin, self.ymax - self.ymin)
-
-
-@dataclass(frozen=True, eq=False)
-class Cameras:
-    """Pinhole cameras: OpenCV world-to-camera ``viewmats [V,4,4]`` and ``Ks [V,3,3]`` (float64)."""
-
-    viewmats: np.ndarray
-    Ks: np.ndarray
-    width: int
-    height: int
-
-    def __post_init__(self) -> None:
-        vm = np.ascontiguousarray(self.viewmats, dtype=np.float64)
-        ks = np.ascontiguousarray(self.Ks, dtype=np.float64)
-        if vm.ndim != 3 or vm.shape[1:] != (4, 4) or ks.shape != (vm.shape[0], 3, 3) or vm.shape[0] < 1:
-            raise WorldModelError(f"Cameras: bad shapes viewmats {vm.shape}, Ks {ks.shape}")
-        if not (np.all(np.isfinite(vm)) and np.all(np.isfinite(ks))):
-            raise WorldModelError("Cameras: non-finite values")
-        if int(self.width) < 1 or int(self.height) < 1:
-            raise WorldModelError(f"Cameras: bad image size {self.width}x{self.height}")
-        object.__setattr__(self, "viewmats", vm)
-        object.__setattr__(self, "Ks", ks)
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
-
-    def __len__(self) -> int:
-        return int(self.viewmats.shape[0])
-
-    def resized(self, width: int, height: int) -> Cameras:
-        """The same cameras for another image size (focal lengths and principal point scaled per axis)."""
-        ks = self.Ks.copy()
-        ks[:, 0] *= width / self.width
-        ks[:, 1] *= height / self.height
-        return Cameras(self.viewmats, ks, width, height)
-
-    def subset(self, idx) -> Cameras:
-        idx = np.atleast_1d(np.asarray(idx, dtype=np.int64))
-        return Cameras(self.viewmats[idx], self.Ks[idx], self.width, self.height)
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,10 +138,6 @@ class WorldModel:
         return dataclasses.replace(self, background=strip(self.background),
                                    objects=tuple(strip(o) for o in self.objects))
 
-    def object_extents(self) -> np.ndarray:
-        """Per object ``[K]``: radius of its Gaussian means about its frame origin (metres)."""
-        return np.array([float(np.linalg.norm(o.means.astype(np.float64), axis=1).max()) for o in self.objects])
-
     def state_poses(self, name: str) -> np.ndarray:
         """``[K,4,4]`` float64 copy of a captured state's poses; ValueError for an unknown state."""
         if name not in self.states:
@@ -213,7 +172,7 @@ class WorldModel:
             if not isinstance(world.background, GaussianSet) or not all(isinstance(g, GaussianSet) for g in sets):
                 raise WorldModelError("world background/objects are not GaussianSets")
             meta = dict(getattr(world, "metadata", {}) or {})
-            states = _world_states(world, len(sets))
+            states = _world_states(world)
             cams = _world_cameras(world, meta)
         except (AttributeError, TypeError, KeyError) as e:
             raise WorldModelError(f"world object lacks a field the runtime needs: {e}") from None
@@ -238,10 +197,6 @@ class WorldModel:
         p = Path(path)
         if not p.exists():
             raise WorldModelError(f"{p}: world file does not exist")
-        try:
-            from .world import load_world  # the reader lands separately; import lazily
-        except ImportError as e:
-            raise WorldModelError(f"{p}: no world-file reader available ({e})") from None
         try:
             world = load_world(p)
         except Exception as e:  # the reader's own errors, whatever their type, become one clear message
@@ -297,7 +252,7 @@ def _table_from_metadata(meta: Mapping[str, Any]) -> TableBounds | None:
     return TableBounds(float(b[0, 0]), float(b[1, 0]), float(b[0, 1]), float(b[1, 1]), z)
 
 
-def _world_states(world: Any, k: int) -> dict[str, np.ndarray]:
+def _world_states(world: Any) -> dict[str, np.ndarray]:
     for attr in ("state_poses", "poses", "states"):
         v = getattr(world, attr, None)
         if isinstance(v, Mapping):
@@ -309,18 +264,23 @@ def _world_cameras(world: Any, meta: Mapping[str, Any]) -> Cameras:
     """The capture cameras: the reader's ``{state: Cameras}`` concatenated (reference state first; states
     with another image size are skipped), or a single camera set."""
     cams = getattr(world, "cameras", None)
-    if not isinstance(cams, Mapping):
-        src = cams if cams is not None else world
-        return Cameras(np.asarray(src.viewmats), np.asarray(src.Ks), src.width, src.height)
-    if not cams:
-        raise WorldModelError("world has no capture cameras")
-    ref = meta.get("reference_state")
-    order = sorted(cams, key=lambda s: (s != ref, str(s)))
-    first = cams[order[0]]
-    same = [cams[s] for s in order if (cams[s].width, cams[s].height) == (first.width, first.height)]
-    return Cameras(
-        np.concatenate([np.asarray(c.viewmats, dtype=np.float64) for c in same]),
-        np.concatenate([np.asarray(c.Ks, dtype=np.float64) for c in same]),
-        first.width,
-        first.height,
-    )
+    try:
+        if not isinstance(cams, Mapping):
+            src = cams if cams is not None else world
+            return Cameras(np.asarray(src.viewmats), np.asarray(src.Ks), src.width, src.height)
+        if not cams:
+            raise WorldModelError("world has no capture cameras")
+        ref = meta.get("reference_state")
+        order = sorted(cams, key=lambda s: (s != ref, str(s)))
+        first = cams[order[0]]
+        same = [cams[s] for s in order if (cams[s].width, cams[s].height) == (first.width, first.height)]
+        return Cameras(
+            np.concatenate([np.asarray(c.viewmats, dtype=np.float64) for c in same]),
+            np.concatenate([np.asarray(c.Ks, dtype=np.float64) for c in same]),
+            first.width,
+            first.height,
+        )
+    except WorldModelError:
+        raise
+    except ValueError as e:  # the cameras' own validation
+        raise WorldModelError(str(e)) from None

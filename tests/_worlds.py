@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from dsg_gym.cameras import Cameras
 from dsg_gym.gaussians import GaussianSet
-from dsg_gym.world_model import Cameras, TableBounds, WorldModel
+from dsg_gym.world_model import TableBounds, WorldModel
 
 HALF = 0.04  # boxes are 8 cm cubes
 

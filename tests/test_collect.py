@@ -15,8 +15,8 @@ minari = pytest.importorskip("minari")
 pytest.importorskip("h5py")
 
 import dsg_gym  # noqa: F401
+from dsg_gym.cli.collect import main
 from dsg_gym.collect import CollectError, collect, episode_seed, load
-from dsg_gym.collect.cli import main
 from dsg_gym.collect.run import WORK_DIR
 from dsg_gym.collect.writer import ShardStore
 

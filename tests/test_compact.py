@@ -11,10 +11,11 @@ import pytest
 import torch
 from _worlds import box_gaussians
 
+from dsg_gym.cameras import Cameras, look_at
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.splat import rasterize
-from dsg_gym.world import load_world
-from dsg_gym.world_model import Cameras, TableBounds, WorldModel
+from dsg_gym.world import encode_world, load_world, write_world
+from dsg_gym.world_model import TableBounds, WorldModel
 from train_world.capture.ply_import import world_from_model
 from train_world.cli.compact import main
 from train_world.compact.checks import SelfCheck
@@ -25,8 +26,7 @@ from train_world.compact.compaction import (
     sh_change_bound,
     truncate_sh,
 )
-from train_world.compact.importance import gaussian_importance, look_at, scene_cameras, view_colors
-from train_world.world_writer import encode_world, write_world
+from train_world.compact.importance import gaussian_importance, scene_cameras, view_colors
 
 # small and quick: few plausible cameras, tiny images
 FAST = {"rings": 2, "per_ring": 6, "object_views": 12, "validation_views": 8, "refit_steps": 0, "step": 0.25}

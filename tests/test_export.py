@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 import dsg_gym  # noqa: F401  (registers DSGWorld-v0)
+from dsg_gym.cli.export import main
 from dsg_gym.envs.dsg_world import DEFAULT_WORLD
 from dsg_gym.envs.recording import EpisodeFileError, RecordEpisode, load_episode, save_episode
-from dsg_gym.export import export_world_ply, export_world_usd, main
+from dsg_gym.export import export_world_ply, export_world_usd
 from dsg_gym.io import read_ply, write_ply
 from dsg_gym.poses import matrix_to_pose7
 from dsg_gym.usd import Episode, read_stage, validate_stage

@@ -50,7 +50,7 @@ def test_fixed_episode_settle_is_bit_identical():
 
 
 def test_bundled_world_rewrites_byte_identical():
-    from train_world.world_writer import encode_world
+    from dsg_gym.world import encode_world
 
     from dsg_gym.world import load_world
 

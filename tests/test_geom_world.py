@@ -62,7 +62,7 @@ def test_world_structure(world):
 
 
 def test_file_round_trip(world, tmp_path):
-    from train_world.world_writer import write_world
+    from dsg_gym.world import write_world
 
     path = write_world(tmp_path / "w.dsgworld", gw.to_world(world))
     back = WorldModel.load(path)

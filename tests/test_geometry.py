@@ -261,6 +261,24 @@ def test_look_at():
     assert Vb.shape == (6, 4, 4) and G.is_rigid(Vb, atol=1e-12).all()
 
 
+
+def test_look_at_and_intrinsics_agree_with_the_numpy_runtime_ones():
+    """The torch look-at / intrinsics (training) and :mod:`dsg_gym.cameras` (runtime) are one convention."""
+    import numpy as np
+
+    from dsg_gym.cameras import intrinsics_from_fov, look_at
+
+    rng = np.random.default_rng(5)
+    eye, target = rng.normal(size=(200, 3)) * 3.0, rng.normal(size=(200, 3))
+    up = rng.normal(size=(200, 3))
+    up[:100] = (0.0, 0.0, 1.0)
+    batched = G.look_at_viewmat(torch.tensor(eye), torch.tensor(target), torch.tensor(up)).numpy()
+    one_by_one = np.stack([look_at(e, t, u) for e, t, u in zip(eye, target, up)])
+    np.testing.assert_allclose(batched, one_by_one, rtol=0, atol=1e-12)
+    for fovy, w, h in ((50.0, 64, 64), (60.0, 320, 240), (12.5, 33, 17)):
+        K = G.intrinsics_from_fov(math.radians(fovy), w, h, dtype=F64).numpy()
+        np.testing.assert_allclose(K, intrinsics_from_fov(fovy, w, h), rtol=1e-15, atol=0)
+
 def test_opengl_opencv_conversion():
     gen = torch.Generator().manual_seed(2)
     p = torch.randn(4, 7, generator=gen, dtype=F64)

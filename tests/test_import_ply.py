@@ -15,11 +15,10 @@ from dsg_gym.envs.dsg_world import GEOMETRY_WORLD as DEFAULT_WORLD  # a base wor
 from dsg_gym.export import export_world_ply
 from dsg_gym.io import PlyFormatError, read_ply, write_ply
 from dsg_gym.scene_renderer import SceneRenderer
-from dsg_gym.world import load_world
+from dsg_gym.world import load_world, write_world
 from dsg_gym.world_model import WorldModel
 from train_world.capture.ply_import import world_from_ply
 from train_world.cli.import_ply import main
-from train_world.world_writer import write_world
 
 EXTERNAL = Path(__file__).resolve().parents[2] / "shared" / "external"
 REAL_PLY = EXTERNAL / "gs_ply_small" / "point_cloud_iter7000.ply"

@@ -9,7 +9,7 @@ import pytest
 from _captures import tiny_capture
 import torch
 
-from dsg_gym.world import load_world
+from dsg_gym.world import encode_world, load_world
 from dsg_gym.world_model import WorldModel
 from train_world.eval.evaluate import render_gaussians
 from train_world.cli import train as cli
@@ -18,7 +18,6 @@ from train_world.single_state.data import load_training_data
 from train_world.single_state.field import SegmentedField, filter3d_variance
 from train_world.single_state.presets import MIP_FILTER3D_SCALE, TrainConfig, get_preset, mip_overrides
 from train_world.single_state.trainer import Trainer
-from train_world.world_writer import encode_world
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import pytest
 from _captures import tiny_capture
 import torch
 
-from dsg_gym.world import load_world
+from dsg_gym.world import encode_world, load_world
 from train_world.cli import train as cli
 from train_world.single_state.checkpoint import load_checkpoint
 from train_world.single_state.data import load_training_data
@@ -19,7 +19,6 @@ from train_world.single_state.losses import identity_loss, neighbour_kl_loss, ph
 from train_world.single_state.presets import TrainConfig, get_preset
 from train_world.single_state.strategy import DensifyStrategy, StrategyConfig
 from train_world.single_state.trainer import Trainer, TrainingDiverged, make_optimizers
-from train_world.world_writer import encode_world
 
 
 @pytest.fixture(scope="module")

@@ -110,7 +110,7 @@ def test_single_threaded_kernels_render_the_same_bits(setup):
 def test_borrow_is_the_same_memory_without_an_owner():
     import numba as nb
 
-    from dsg_gym.splat._numba_intrinsics import borrow
+    from dsg_gym.splat.numba_intrinsics import borrow
 
     @nb.njit
     def touch(a):
@@ -128,14 +128,14 @@ def test_borrow_is_the_same_memory_without_an_owner():
 
 
 def test_plan_tiles_gives_every_tile_to_one_thread_longest_first():
-    from dsg_gym.splat import _numba_incremental as I
+    from dsg_gym.splat import numba_incremental as incr
 
     rng = np.random.default_rng(0)
     tiles = rng.permutation(40)[:13].astype(np.int64)
     b_off = np.concatenate([[0], np.cumsum(rng.integers(0, 300, 40))]).astype(np.int64)
     a_off = np.concatenate([[0], np.cumsum(rng.integers(0, 900, 40))]).astype(np.int64)
     for use_cache, P in ((True, 2), (False, 3), (True, 1), (True, 20)):
-        order, starts = I.plan_tiles(tiles, a_off, b_off, use_cache, P)
+        order, starts = incr.plan_tiles(tiles, a_off, b_off, use_cache, P)
         assert sorted(order) == sorted(tiles) and starts[0] == 0 and starts[-1] == tiles.size
         assert len(starts) == min(P, tiles.size) + 1
         cost = {int(t): b_off[t + 1] - b_off[t] + (40 if use_cache else a_off[t + 1] - a_off[t]) for t in tiles}
@@ -220,12 +220,12 @@ def test_render_settings_defaults_and_incremental_exactness(setup):
     """Settings at the 3DGS values render exactly like no settings; the env's default settings and
     other thresholds keep incremental == full and change the image only a little."""
     from dsg_gym.scene_renderer import RenderSettings
-    from dsg_gym.splat import _numba_raster as R
+    from dsg_gym.splat import numba_raster as raster
 
     bg, objs, vm, K, W, H = setup
     poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
     ref = SceneRenderer(bg, objs, vm, K, W, H).render(poses, depth=True)
-    same = SceneRenderer(bg, objs, vm, K, W, H, **RenderSettings(R.ALPHA_MIN, R.T_MIN).kwargs()).render(poses, depth=True)
+    same = SceneRenderer(bg, objs, vm, K, W, H, **RenderSettings(raster.ALPHA_MIN, raster.T_MIN).kwargs()).render(poses, depth=True)
     assert np.array_equal(ref.rgb, same.rgb) and np.array_equal(ref.alpha, same.alpha)
     env_default = SceneRenderer(bg, objs, vm, K, W, H, **RenderSettings().kwargs()).render(poses, depth=True)
     d = np.abs(env_default.rgb.astype(int) - ref.rgb.astype(int))

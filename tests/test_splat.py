@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from dsg_gym.splat import C0, rasterize, spherical_harmonics
-from dsg_gym.splat.scenes import intrinsics, random_scene
+from benchmarks.splat_scenes import intrinsics, random_scene
 
 DIFF_ARGS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -111,7 +111,7 @@ def test_antialiased_numba_matches_torch_reference(eps2d):
 
 def test_antialiasing_factor_is_the_determinant_ratio():
     """Opacity x sqrt(det Sigma / det(Sigma + 0.3 I)), from the 2D covariance of one projected Gaussian."""
-    from dsg_gym.splat._numba_project import BLUR
+    from dsg_gym.splat.numba_project import BLUR
 
     for scale, rot in ((0.01, (1.0, 0.0, 0.0, 0.0)), (0.05, (0.9, 0.3, -0.2, 0.1)), (0.3, (0.6, 0.0, 0.8, 0.0))):
         out = _single([0.05, -0.02, 2.0], [scale, 0.4 * scale, 1.5 * scale], 0.7, [1.0, 1.0, 1.0], quat=rot,
@@ -368,18 +368,18 @@ def test_sh_rotation_turns_the_colour_function_with_the_gaussian():
 def test_splat_rows_with_precomputed_spans_equals_splat_forward():
     """The incremental renderer composites with row spans computed ahead (``span_rows`` + ``splat_rows``);
     Gaussian after Gaussian, that leaves a tile's accumulators exactly as ``splat_forward`` does."""
-    from dsg_gym.splat import _numba_raster as R
+    from dsg_gym.splat import numba_raster as raster
 
     rng = np.random.default_rng(3)
-    consts = R.make_consts(np.float32, 3.0 / 255.0, 1e-3)
+    consts = raster.make_consts(np.float32, 3.0 / 255.0, 1e-3)
     W = H = 40
     tiles_x = 3
     finished = 0
     for tile in range(9):  # interior, right and bottom border tiles (partial)
-        a = R.tile_state(tile, tiles_x, W, H, 3, np.float32)
-        b = R.tile_state(tile, tiles_x, W, H, 3, np.float32)
+        a = raster.tile_state(tile, tiles_x, W, H, 3, np.float32)
+        b = raster.tile_state(tile, tiles_x, W, H, 3, np.float32)
         px0, py0, pw, ph = a[:4]
-        rows = np.zeros(R.TILE, np.uint16)
+        rows = np.zeros(raster.TILE, np.uint16)
         for _ in range(150):
             u, v = (np.array([px0, py0]) + rng.uniform(-6, 22, 2)).astype(np.float32)  # around this tile
             L = rng.normal(size=(2, 2)) * rng.uniform(0.5, 4.0)
@@ -389,10 +389,10 @@ def test_splat_rows_with_precomputed_spans_equals_splat_forward():
             r = int(math.ceil(3.0 * math.sqrt(np.linalg.eigvalsh(cov).max())))
             rect = (max(int(u) - r, 0), min(int(u) + r, W - 1), max(int(v) - r, 0), min(int(v) + r, H - 1))
             col = rng.uniform(0, 1, 3).astype(np.float32)
-            f1 = R.splat_forward(consts, u, v, ca, cb, cc, o, *rect, col, px0, py0, pw, ph, a[7], a[8], a[4], a[5],
+            f1 = raster.splat_forward(consts, u, v, ca, cb, cc, o, *rect, col, px0, py0, pw, ph, a[7], a[8], a[4], a[5],
                                  a[6])
-            R.span_rows(consts, u, v, ca, cb, cc, o, *rect, px0, py0, pw, ph, b[8], rows)
-            f2 = R.splat_rows(consts, u, v, ca, cb, cc, o, rect[2], rect[3], rows, col, py0, ph, b[7], b[8], b[4],
+            raster.span_rows(consts, u, v, ca, cb, cc, o, *rect, px0, py0, pw, ph, b[8], rows)
+            f2 = raster.splat_rows(consts, u, v, ca, cb, cc, o, rect[2], rect[3], rows, col, py0, ph, b[7], b[8], b[4],
                               b[5], b[6])
             assert f1 == f2
             finished += f1
@@ -447,9 +447,10 @@ def test_pair_gather_and_gaussian_major_gradients(per_camera):
     """The compositing kernels read each (tile, Gaussian) pair's inputs from ``gather_pairs`` and write pair
     gradients in Gaussian-major rows (``pair_slots``): the image equals compositing each tile's list with
     ``splat_forward`` straight from the Gaussian arrays, and every pair's row holds its own Gaussian's data."""
-    from dsg_gym.splat import _numba_backend as NB
-    from dsg_gym.splat import _numba_bins as B
-    from dsg_gym.splat import _numba_raster as R
+    from dsg_gym.splat import _numba_backend as numba_backend
+    from dsg_gym.splat import numba_bins as binning
+    from dsg_gym.splat import numba_raster as raster
+    from dsg_gym.splat.numba_raster_backward import pair_slots
 
     scene = random_scene(600, width=40, height=34, seed=7, cameras=2)
     g = torch.Generator().manual_seed(1)
@@ -460,15 +461,15 @@ def test_pair_gather_and_gaussian_major_gradients(per_camera):
     colors = colors if colors.ndim == 3 else colors[None]
     opac = scene["opacities"].numpy()
     opac = opac if opac.ndim == 2 else opac[None]
-    m2, cn, depths, _, rects = (t.detach().numpy() for t in NB.project(
+    m2, cn, depths, _, rects = (t.detach().numpy() for t in numba_backend.project(
         scene["means"], scene["quats"], scene["scales"], torch.from_numpy(opac), scene["viewmats"], scene["Ks"], 40,
         34, 0.01, 1e10))
     tx, ty = 3, 3
-    order, counts = B.depth_order(depths.view(np.uint32), rects)
-    t_off, t_gauss, g_off, g_pairs = B.bin_gaussians(rects, order, counts, tx, ty)
+    order, counts = binning.depth_order(depths.view(np.uint32), rects)
+    t_off, t_gauss, g_off, g_pairs = binning.bin_gaussians(rects, order, counts, tx, ty)
     P, D = t_gauss.shape[0], colors.shape[2]
     pairs = (np.empty((P, 6), np.float32), np.empty((P, 4), np.int32), np.empty((P, D), np.float32))
-    R.gather_pairs(m2, cn, opac, colors, rects, t_off, t_gauss, tx, ty, *pairs)
+    raster.gather_pairs(m2, cn, opac, colors, rects, t_off, t_gauss, tx, ty, *pairs)
     cam = np.repeat(np.arange(2 * tx * ty) // (tx * ty), np.diff(t_off))
     ci = cam if per_camera else np.zeros_like(cam)
     np.testing.assert_array_equal(pairs[0][:, :2], m2[cam, t_gauss])
@@ -476,24 +477,24 @@ def test_pair_gather_and_gaussian_major_gradients(per_camera):
     np.testing.assert_array_equal(pairs[0][:, 5], opac[ci, t_gauss])
     np.testing.assert_array_equal(pairs[1], rects[cam, t_gauss])
     np.testing.assert_array_equal(pairs[2], colors[ci, t_gauss])
-    consts = R.make_consts(np.float32)
+    consts = raster.make_consts(np.float32)
     out = np.empty((2, 34, 40, D), np.float32)
     out_T = np.empty((2, 34, 40), np.float32)
-    R.composite_forward(*pairs, t_off, tx, ty, 40, 34, consts, B.balanced_order(2 * tx * ty), out, out_T)
+    raster.composite_forward(*pairs, t_off, tx, ty, 40, 34, consts, binning.balanced_order(2 * tx * ty), out, out_T)
     ref = np.empty_like(out)
     ref_T = np.empty_like(out_T)
     for ct in range(2 * tx * ty):  # the direct loop, one tile at a time
         c = ct // (tx * ty)
-        px0, py0, pw, ph, acc, trans, row_done, xc, yc = R.tile_state(ct % (tx * ty), tx, 40, 34, D, np.float32)
+        px0, py0, pw, ph, acc, trans, row_done, xc, yc = raster.tile_state(ct % (tx * ty), tx, 40, 34, D, np.float32)
         for s in range(t_off[ct], t_off[ct + 1]):
             k = t_gauss[s]
-            R.splat_forward(consts, *m2[c, k], *cn[c, k], opac[c if per_camera else 0, k], *rects[c, k],
+            raster.splat_forward(consts, *m2[c, k], *cn[c, k], opac[c if per_camera else 0, k], *rects[c, k],
                             colors[c if per_camera else 0, k], px0, py0, pw, ph, xc, yc, acc, trans, row_done)
-        R.store_tile(c, px0, py0, pw, ph, acc, trans, ref, ref_T)
+        raster.store_tile(c, px0, py0, pw, ph, acc, trans, ref, ref_T)
     np.testing.assert_array_equal(out, ref)
     np.testing.assert_array_equal(out_T, ref_T)
     assert (out_T < 0.5).mean() > 0.3  # the views are covered
-    slot = R.pair_slots(g_pairs)
+    slot = pair_slots(g_pairs)
     np.testing.assert_array_equal(g_pairs[slot], np.arange(P))
     # Gaussian-major rows: pair s of camera c, Gaussian k lands inside k's range of gauss_offsets
     lo, hi = g_off[cam * 600 + t_gauss], g_off[cam * 600 + t_gauss + 1]

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from dsg_gym.splat import rasterize
-from dsg_gym.splat.scenes import intrinsics, random_scene
+from benchmarks.splat_scenes import intrinsics, random_scene
 
 BACKENDS = ["numba", "torch"]
 

@@ -164,7 +164,7 @@ def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
     assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p_old), "--methods", "a,X"]) == 2
     assert suite_main(["--out", str(tmp_path / "ok"), "--merge", str(p_old), str(p_new), "--methods", "a,BCP"]) == 0
     assert json.loads((tmp_path / "ok" / "table.json").read_text())["two_state_schedule"] == [4500, 3000, 0]
-    # rows refined after merging (session 16 on) do not mix with unrefined ones
+    # rows refined after merging (a third schedule entry above 0) do not mix with unrefined ones
     refined = _ours(37.5, 4500, 3000)
     refined["train"]["refine_steps"] = 4000
     with pytest.raises(ValueError, match=r"\[4500, 3000, 0\]: five_small/BCP; \[4500, 3000, 4000\]: two_blocks/BCP"):
@@ -179,7 +179,8 @@ def test_merge_refuses_ours_rows_of_different_two_state_schedules(tmp_path):
 def test_merge_refuses_rows_that_held_out_different_views():
     from train_world.suite.runner import merge_tables
 
-    # before session 15 every training held out every 8th view (the records do not say); since, none
+    # rows without holdout_every come from trainings that held out every 8th view (the records do not say);
+    # newer rows record theirs (0: every view trained)
     old = _table({"two_blocks": {"a": _run(29.0, 1), "BCP": _ours(36.0, 4500, 3000)},
                   "five_small": {"a": _run(34.0, 1)}}, two_state_schedule=[4500, 3000])
     new_rows = {m: _ours(p, 4500, 3000) for m, p in (("BCP", 36.2), ("a", 29.1))}
@@ -194,8 +195,9 @@ def test_merge_refuses_rows_that_held_out_different_views():
 
 
 @pytest.mark.parametrize("files", [
-    ("suite-1.3-session16.json", "suite-1.3-session18a.json"),  # with refinement (README: "Ablations over ...")
-    ("suite-1.3-session15.json", "suite-1.3-session15c.json", "suite-1.3-session18b.json"),  # without
+    ("suite/2026-11-24-3224ca5.json", "suite/2026-11-24-a494dde-ablation.json"),  # with refinement
+    ("suite/2026-11-24-87b82f9-unrefined.json", "suite/2026-11-24-5267b3b-ablation-unrefined.json",
+     "suite/2026-11-24-a494dde-ablation-unrefined.json"),  # without (README: "Ablations over ...")
 ])
 def test_committed_ablation_tables_merge_as_the_readme_says(files):
     """The README's commands that rebuild the seven-scene ablation tables from ``benchmarks/results/`` work: the
@@ -210,3 +212,18 @@ def test_committed_ablation_tables_merge_as_the_readme_says(files):
     assert len(m["scenes"]) == 7 and all(set(r) == {"B", "BC", "BCP"} for r in m["scenes"].values())
     psnr = {k: np.mean([r[k]["mean"]["psnr"] for r in m["scenes"].values()]) for k in ("B", "BC", "BCP")}
     assert psnr["B"] < psnr["BC"] < psnr["BCP"], psnr
+
+
+def test_committed_main_table_merges():
+    """``dsg-suite --merge`` of the committed baselines' table and ours (with refinement) gives the seven-scene
+    table of (a), (b) and B+C+P, ours ahead of both baselines on the mean."""
+    from pathlib import Path
+
+    from train_world.suite.runner import merge_tables
+
+    root = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "suite"
+    files = ("2026-11-24-87b82f9-baselines.json", "2026-11-24-3224ca5.json")
+    m = merge_tables([json.loads((root / f).read_text()) for f in files], ["a", "b", "BCP"])
+    assert len(m["scenes"]) == 7 and all(set(r) == {"a", "b", "BCP"} for r in m["scenes"].values())
+    psnr = {k: np.mean([r[k]["mean"]["psnr"] for r in m["scenes"].values()]) for k in ("a", "b", "BCP")}
+    assert psnr["BCP"] > max(psnr["a"], psnr["b"]), psnr

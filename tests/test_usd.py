@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdVol
 
+from dsg_gym.cameras import look_at
 from dsg_gym.gaussians import GaussianSet
+from dsg_gym.poses import quat_to_rotmat, rotmat_to_quat
 from dsg_gym.usd import (
     Episode,
     EpisodeRecorder,
@@ -24,7 +26,6 @@ from dsg_gym.usd import stage as stage_mod
 from dsg_gym.usd.cameras import K_from_usd_lens, usd_lens_from_K
 from dsg_gym.usd.collider import convex_hull_mesh
 from dsg_gym.usd.splats import splat_extent
-from dsg_gym.usd.transforms import quat_to_rotmat, rotmat_to_quat
 
 FIELDS = ("means", "quats", "scales", "opacities", "sh", "features", "labels")
 
@@ -64,24 +65,9 @@ def rot_z(deg):
     return pose
 
 
-def look_at_viewmat(eye, target, up=(0.0, 0.0, 1.0)):
-    """OpenCV world-to-camera looking from ``eye`` at ``target``."""
-    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    r = np.stack([x, y, z])  # rows: camera axes in world coordinates
-    view = np.eye(4)
-    view[:3, :3] = r
-    view[:3, 3] = -r @ eye
-    return view
-
-
 def make_camera(name="cam", eye=(0.6, -0.4, 0.5), w=160, h=120):
     K = np.array([[150.0, 0.0, 83.25], [0.0, 141.5, 57.5], [0.0, 0.0, 1.0]])
-    return UsdCamera(name, look_at_viewmat(eye, (0.0, 0.0, 0.02)), K, w, h)
+    return UsdCamera(name, look_at(eye, (0.0, 0.0, 0.02)), K, w, h)
 
 
 def assert_bits_equal(a: GaussianSet, b: GaussianSet):
@@ -354,7 +340,7 @@ def test_cameras_project_consistently(tmp_path, world):
     rng = np.random.default_rng(9)
     cams = [
         make_camera("a"),
-        UsdCamera("b", look_at_viewmat((0.1, 0.9, 0.3), (0.05, 0.0, 0.1)),
+        UsdCamera("b", look_at((0.1, 0.9, 0.3), (0.05, 0.0, 0.1)),
                   np.array([[400.0, 0, 300.5], [0, 380.0, 170.25], [0, 0, 1]]), 640, 360),
     ]
     path = export_stage(tmp_path / "c.usdc", background, [], cams)
@@ -516,7 +502,7 @@ def test_write_is_atomic_on_failure_after_temp_written(tmp_path, world, monkeypa
         assert Path(src).is_file() and Path(src).suffix == ".usda" and Path(src).parent == tmp_path
         raise OSError("rename failed")
 
-    monkeypatch.setattr(stage_mod.os, "replace", failing_replace)
+    monkeypatch.setattr(os, "replace", failing_replace)
     with pytest.raises(OSError, match="rename failed"):
         export_stage(target, background, objects, cameras)
     assert seen and not seen[0].exists()

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 from safetensors.numpy import save as st_save
 
+from dsg_gym.cameras import Cameras
 from dsg_gym.gaussians import GaussianSet
-from dsg_gym.world import Cameras, World, WorldFormatError, WorldObject, load_world, parse_world_bytes
-from train_world.world_writer import build_world, encode_world, write_world
+from dsg_gym.world import World, WorldFormatError, WorldObject, load_world, parse_world_bytes
+from dsg_gym.world import build_world, encode_world, write_world
 
 
 def _random_set(rng, n, degree=1, nf=16, encodings=True):

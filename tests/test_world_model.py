@@ -6,7 +6,8 @@ import torch
 
 from dsg_gym import geometry as G
 from dsg_gym import poses as P
-from dsg_gym.world_model import Cameras, WorldModel, WorldModelError, derive_table_bounds
+from dsg_gym.cameras import Cameras
+from dsg_gym.world_model import WorldModel, WorldModelError, derive_table_bounds
 from _worlds import two_box_world
 
 
@@ -80,7 +81,7 @@ def test_validation_and_table_bounds():
     assert t.xmin == pytest.approx(-0.3, abs=0.03) and t.ymax == pytest.approx(0.2, abs=0.03)
     c = w.cameras.resized(128, 96)
     assert c.Ks[0, 0, 2] == pytest.approx(64) and c.Ks[0, 1, 2] == pytest.approx(48)
-    with pytest.raises(WorldModelError):
+    with pytest.raises(ValueError, match="bad image size"):
         Cameras(np.eye(4)[None], np.eye(3)[None], 0, 10)
 
 

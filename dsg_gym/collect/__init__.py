@@ -1,5 +1,5 @@
 """Policy data collection: vectorised rollouts of ``DSGWorld-v0`` (or any Box-action Gymnasium env) written as
-Minari datasets, resumable, optionally spread over Ray workers. CLI: ``dsg-collect`` (:mod:`.cli`).
+Minari datasets, resumable, optionally spread over Ray workers. CLI: ``dsg-collect`` (:mod:`dsg_gym.cli.collect`).
 
 ```python
 from dsg_gym.collect import collect

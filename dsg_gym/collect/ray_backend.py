@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from .episodes import collect_episodes
 from .rollout import CollectError
 from .writer import ShardStore
 
@@ -45,8 +46,6 @@ def _run_block(settings: Mapping[str, Any], indices: list[int], shard_root: str,
     # the task holds num_envs CPUs: a single env renders on that many threads (with more envs the rendering
     # happens in the vector env's worker processes, single-threaded; dsg_gym.splat.threads)
     numba.set_num_threads(max(1, min(num_envs, numba.config.NUMBA_NUM_THREADS)))
-    from dsg_gym.collect.run import collect_episodes
-
     return collect_episodes(settings, indices, Path(shard_root), num_envs=num_envs, shard_episodes=shard_episodes,
                             flush_seconds=flush_seconds)  # fmt: skip
 

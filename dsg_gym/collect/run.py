@@ -7,25 +7,20 @@ import math
 import re
 import shutil
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .policies import PolicyError, policy_factory, policy_name
-from .rollout import CollectError, EpisodeRecord, make_env, make_vector_env, rollout
-from .writer import (
-    IMAGE_ENCODINGS,
-    ShardStore,
-    combine_shards,
-    env_spec_for,
-    remove_partial,
-    write_json_atomic,
-)
+from .episodes import collect_episodes
+from .policies import policy_name
+from .rollout import CollectError, EpisodeRecord
+from ..io.atomic import atomic_write_bytes, remove_partial
+from .writer import IMAGE_ENCODINGS, ShardStore, combine_shards, env_spec_for
 
-__all__ = ["WORK_DIR", "CollectResult", "collect", "collect_episodes", "default_dataset_id"]
+__all__ = ["WORK_DIR", "CollectResult", "collect", "default_dataset_id"]
 
 #: hidden folder under the output root that holds unfinished runs
 WORK_DIR = ".dsg-collect"
@@ -71,65 +66,6 @@ def _positive(name: str, v) -> int:
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
         raise CollectError(f"{name} must be a positive integer, got {v!r}")
     return int(v)
-
-
-def collect_episodes(
-    settings: Mapping[str, Any],
-    indices: Sequence[int],
-    shard_root: Path,
-    *,
-    num_envs: int = 1,
-    shard_episodes: int = 16,
-    flush_seconds: float = 30.0,
-    on_episode: Callable[[EpisodeRecord], None] | None = None,
-    on_steps: Callable[[int], None] | None = None,
-) -> dict[str, int]:
-    """Run the episodes ``indices`` of a run (``settings``: see :func:`collect`'s ``run.json``) in a vector
-    env of ``num_envs`` and write them as shards under ``shard_root``: a shard every ``shard_episodes``
-    finished episodes or ``flush_seconds``, and whatever is finished when the run stops for any reason
-    (error, ``KeyboardInterrupt``). Used by the local backend and by each Ray worker."""
-    s = settings
-    store = ShardStore(shard_root)
-    template = make_env(s["env_id"], s["env_kwargs"], s["max_episode_steps"])
-    pending: list[EpisodeRecord] = []
-    last = [time.monotonic()]
-    stats = {"episodes": 0, "transitions": 0}
-
-    def flush() -> None:
-        if pending:
-            store.write(pending, observation_space=template.observation_space, action_space=template.action_space,
-                        dataset_id=s["dataset_id"], data_format=s["data_format"])  # fmt: skip
-            pending.clear()
-        last[0] = time.monotonic()
-
-    def episode(rec: EpisodeRecord) -> None:
-        pending.append(rec)
-        stats["episodes"] += 1
-        stats["transitions"] += len(rec)
-        if on_episode is not None:
-            on_episode(rec)
-        if len(pending) >= shard_episodes or time.monotonic() - last[0] >= flush_seconds:
-            flush()
-
-    envs = None
-    ok = False
-    try:
-        try:
-            make_policy = policy_factory(s["policy"], template)
-        except PolicyError as e:
-            raise CollectError(str(e)) from e
-        envs = make_vector_env(s["env_id"], s["env_kwargs"], num_envs, s["max_episode_steps"])
-        rollout(envs, indices, s["seed"], make_policy, episode, on_steps=on_steps,
-                policy_label=f"policy {policy_name(s['policy'])!r}")  # fmt: skip
-        ok = True
-    finally:
-        try:
-            flush()  # keep every finished episode, whatever stopped the run
-        finally:
-            if envs is not None:
-                envs.close(**({} if ok or num_envs == 1 else {"terminate": True}))
-            template.close()
-    return stats
 
 
 class _Progress:
@@ -274,7 +210,7 @@ def collect(
         if settings["seed"] is None:
             settings["seed"] = int(np.random.SeedSequence().entropy % (2**63))
         work.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(run_file, settings)
+    atomic_write_bytes(run_file, json.dumps(settings, indent=1, sort_keys=True).encode())
     if not isinstance(policy, str):
         settings = {**settings, "policy": policy}  # the object itself runs; its name is what is recorded
 

@@ -22,36 +22,31 @@ complete shard / dataset or none (temporaries are removed on the next run).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import inspect
 import json
-import os
-import shutil
 import uuid
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 
+from ..io.atomic import atomic_dir, remove_partial
 from .rollout import CollectError, EpisodeRecord
 
 __all__ = [
     "IMAGE_ENCODINGS",
     "ShardInfo",
     "ShardStore",
-    "atomic_dir",
     "combine_shards",
     "env_spec_for",
     "to_episode_buffer",
-    "write_json_atomic",
     "write_storage",
 ]
 
 IMAGE_ENCODINGS = ("raw", "jpeg")
-_TMP_TAG = ".tmp-"
 
 
 def _minari():
@@ -72,42 +67,6 @@ def _jpeg_kw(jpeg: bool) -> dict[str, bool]:
     if jpeg:
         raise CollectError("the installed minari has no JPEG option (images are always stored raw)")
     return {}  # older minari: raw arrays only
-
-
-@contextlib.contextmanager
-def atomic_dir(target: Path) -> Iterator[Path]:
-    """Yield a fresh hidden sibling folder of ``target``; rename it to ``target`` on success, delete it on
-    any exception (``target`` must not exist)."""
-    target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.parent / f".{target.name}{_TMP_TAG}{uuid.uuid4().hex[:12]}"
-    tmp.mkdir()
-    try:
-        yield tmp
-        os.rename(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def write_json_atomic(path: Path, obj: Any) -> None:
-    path = Path(path)
-    tmp = path.parent / f".{path.name}{_TMP_TAG}{uuid.uuid4().hex[:12]}"
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
-    os.replace(tmp, path)
-
-
-def remove_partial(folder: Path, name: str = "") -> None:
-    """Delete temporaries left by interrupted writes in ``folder`` (only those of ``name`` if given)."""
-    if folder.is_dir():
-        for p in folder.iterdir():
-            ours = (
-                p.name.startswith(f".{name}{_TMP_TAG}")
-                if name
-                else p.name.startswith(".") and _TMP_TAG in p.name
-            )
-            if ours:
-                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
 
 def env_spec_for(env_id: str, env_kwargs: Mapping[str, Any], max_episode_steps: int | None):

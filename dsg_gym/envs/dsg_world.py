@@ -10,6 +10,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from ..cameras import Cameras, intrinsics_from_fov, look_at
 from ..poses import (
     as_poses7,
     axis_angle_to_quat,
@@ -18,7 +19,7 @@ from ..poses import (
     quat_normalize,
     yaw_to_quat,
 )
-from ..world_model import Cameras, WorldModel
+from ..world_model import WorldModel
 from .tasks import RearrangementTask, TaskParams
 
 __all__ = ["DSGWorldEnv", "DEFAULT_WORLD", "GEOMETRY_WORLD", "load_default_world"]
@@ -66,6 +67,7 @@ def _resolve_world(world) -> WorldModel:
 
 
 def _look_at(spec: Mapping[str, Any], width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(viewmat, K)`` of a look-at camera spec ``{eye, target[, up][, fovy_deg]}`` (checked)."""
     unknown = set(spec) - {"eye", "target", "up", "fovy_deg"}
     if unknown or "eye" not in spec or "target" not in spec:
         raise ValueError(f"look-at camera spec needs 'eye' and 'target' (optional 'up', 'fovy_deg'); got {spec}")
@@ -79,20 +81,7 @@ def _look_at(spec: Mapping[str, Any], width: int, height: int) -> tuple[np.ndarr
         raise ValueError("look-at camera: non-finite eye/target/up")
     if not 0.0 < fovy < 180.0:
         raise ValueError(f"look-at camera: fovy_deg must lie in (0, 180), got {fovy}")
-    z = target - eye
-    if np.linalg.norm(z) < 1e-9:
-        raise ValueError("look-at camera: eye equals target")
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-9:
-        raise ValueError("look-at camera: up is parallel to the viewing direction")
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    vm = np.eye(4)
-    vm[:3, :3] = np.stack([x, y, z])
-    vm[:3, 3] = -vm[:3, :3] @ eye
-    f = 0.5 * height / np.tan(0.5 * np.deg2rad(fovy))
-    return vm, np.array([[f, 0.0, 0.5 * width], [0.0, f, 0.5 * height], [0.0, 0.0, 1.0]])
+    return look_at(eye, target, up), intrinsics_from_fov(fovy, width, height)
 
 
 def _resolve_cameras(cameras, capture: Cameras, width: int, height: int) -> tuple[Cameras, bool]:

@@ -28,13 +28,13 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 
+from ..io.atomic import atomic_write_bytes
 from ..usd.episode import Episode, EpisodeRecorder
 
 __all__ = ["EpisodeFileError", "RecordEpisode", "load_episode", "save_episode", "EPISODE_KEYS"]
@@ -56,8 +56,8 @@ def _episode_path(path) -> Path:
 
 
 def save_episode(path, episode: Episode) -> Path:
-    """Write ``episode`` as an ``.npz`` episode file (``.npz`` appended when ``path`` has no suffix) via a
-    temporary file in the same folder and ``os.replace``; returns the path."""
+    """Write ``episode`` as an ``.npz`` episode file (``.npz`` appended when ``path`` has no suffix), atomically
+    (:mod:`dsg_gym.io.atomic`); returns the path."""
     if not isinstance(episode, Episode):
         raise EpisodeFileError(f"save_episode: expected an Episode, got {type(episode).__name__}")
     p = _episode_path(path)
@@ -68,16 +68,7 @@ def save_episode(path, episode: Episode) -> Path:
         arrays["actions"] = np.ascontiguousarray(episode.actions, np.float64)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(buf.getvalue())
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return p
+    return atomic_write_bytes(p, buf.getvalue())
 
 
 def load_episode(path) -> Episode:

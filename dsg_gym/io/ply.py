@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +42,7 @@ from dsg_gym.gaussians import (
     activate_scale,
     sh_degree_from_coeffs,
 )
+from dsg_gym.io.atomic import atomic_path
 
 __all__ = ["PlyFormatError", "read_ply", "write_ply", "read_ply_header", "PlyHeader"]
 
@@ -305,43 +305,19 @@ def encode_vertices(gaussians: GaussianSet, *, normals: bool = True,
     return names, np.ascontiguousarray(table)
 
 
-def _current_umask() -> int:
-    """The process umask, read without changing it (Linux), else the common 0o022."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except OSError:
-        pass
-    return 0o022
-
-
 def write_ply(path: str | os.PathLike, gaussians: GaussianSet, *, normals: bool = True,
               labels: bool | None = None) -> Path:  # fmt: skip
     """Write ``gaussians`` as an Inria-layout 3DGS PLY, atomically.
 
     ``normals``: write zero ``nx ny nz`` (Inria layout, default) or omit them (gsplat).
     ``labels``: write the ``label`` property (float32) always (True), never (False) or only
-    when some label is non-zero (None, default). The file is written to a temporary file
-    in the same folder and moved into place with ``os.replace``. Returns the path.
+    when some label is non-zero (None, default). The file is written atomically
+    (:mod:`dsg_gym.io.atomic`). Returns the path.
     """
     path = Path(path)
     names, table = encode_vertices(gaussians, normals=normals, labels=labels)
     payload = _header_bytes(table.shape[0], names)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-            fh.write(table.tobytes())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp makes 0600; give the usual mode
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_path(path) as tmp, open(tmp, "xb") as fh:
+        fh.write(payload)
+        fh.write(table.tobytes())
     return path

@@ -5,14 +5,15 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import _numba_bins as B
-from . import _numba_project as P
+from . import numba_bins as binning
+from . import numba_project as projection
 from . import _torch_backend
-from . import _numba_raster as R
-from . import _numba_sh as S
+from . import numba_raster as raster
+from . import numba_raster_backward as raster_backward
+from . import numba_sh as sh_kernels
 
 
-_consts = R.make_consts
+_consts = raster.make_consts
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -32,9 +33,9 @@ class _Project(torch.autograd.Function):
         depths = torch.empty((C, N), dtype=dt)
         radii = torch.empty((C, N, 2), dtype=torch.int32)
         rects = torch.empty((C, N, 4), dtype=torch.int32)
-        P.project_forward(m, q, s, _np(opacities), vm, K, float(width), float(height),
+        projection.project_forward(m, q, s, _np(opacities), vm, K, float(width), float(height),
                           float(near), float(far), means2d.numpy(), conics.numpy(), depths.numpy(),
-                          radii.numpy(), rects.numpy(), P.ALPHA_MIN, float(eps2d))
+                          radii.numpy(), rects.numpy(), projection.ALPHA_MIN, float(eps2d))
         ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii)
         ctx.size = (width, height)
         ctx.eps2d = float(eps2d)
@@ -55,7 +56,7 @@ class _Project(torch.autograd.Function):
         v_means = torch.empty((N, 3), dtype=dt)
         v_quats = torch.empty((N, 4), dtype=dt)
         v_scales = torch.empty((N, 3), dtype=dt)
-        P.project_backward(_np(means), _np(quats), _np(scales),
+        projection.project_backward(_np(means), _np(quats), _np(scales),
                            _np(viewmats).astype(np.float64, copy=False),
                            _np(Ks).astype(np.float64, copy=False), float(width), float(height),
                            radii.numpy(), grad_or_zeros(v_means2d, (C, N, 2)),
@@ -70,25 +71,25 @@ class _Composite(torch.autograd.Function):
         C = means2d.shape[0]
         D = colors.shape[2]
         dt = means2d.dtype
-        tiles_x = (width + R.TILE - 1) // R.TILE
-        tiles_y = (height + R.TILE - 1) // R.TILE
+        tiles_x = (width + raster.TILE - 1) // raster.TILE
+        tiles_y = (height + raster.TILE - 1) // raster.TILE
         d = _np(depths)
         r = _np(rects)
         # Visible depths are >= near > 0, so their bit patterns sort like the values; the radix
         # sort is stable (equal depths keep index order): the result is deterministic.
         keys = d.view(np.uint32 if d.dtype == np.float32 else np.uint64)
-        order, counts = B.depth_order(keys, r)
-        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = B.bin_gaussians(r, order, counts, tiles_x,
+        order, counts = binning.depth_order(keys, r)
+        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = binning.bin_gaussians(r, order, counts, tiles_x,
                                                                                tiles_y)
         out = torch.empty((C, height, width, D), dtype=dt)
         out_T = torch.empty((C, height, width), dtype=dt)
         m2 = _np(means2d)
         P = tile_gauss.shape[0]
         pairs = (np.empty((P, 6), dtype=m2.dtype), np.empty((P, 4), dtype=r.dtype), np.empty((P, D), dtype=m2.dtype))
-        R.gather_pairs(m2, _np(conics), _np(opacities), _np(colors), r, tile_offsets, tile_gauss, tiles_x, tiles_y,
+        raster.gather_pairs(m2, _np(conics), _np(opacities), _np(colors), r, tile_offsets, tile_gauss, tiles_x, tiles_y,
                        *pairs)
-        R.composite_forward(*pairs, tile_offsets, tiles_x, tiles_y, width, height, _consts(m2.dtype),
-                            B.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy())
+        raster.composite_forward(*pairs, tile_offsets, tiles_x, tiles_y, width, height, _consts(m2.dtype),
+                            binning.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy())
         if backgrounds is not None:
             out += out_T[..., None] * backgrounds[:, None, None, :].detach()
         alphas = (1.0 - out_T)[..., None]
@@ -112,15 +113,16 @@ class _Composite(torch.autograd.Function):
             v_alphas = torch.zeros_like(out_T)[..., None]
         vo = _np(v_out)
         pair_grads = np.zeros((pairs[0].shape[0], D + 6), dtype=vo.dtype)
-        R.composite_backward(*pairs, tile_offsets, tiles_x, tiles_y, width, height, _consts(out.numpy().dtype),
-                             B.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy(), vo,
-                             _np(v_alphas[..., 0]), R.pair_slots(gauss_pairs), pair_grads)
+        raster_backward.composite_backward(*pairs, tile_offsets, tiles_x, tiles_y, width, height,
+                                           _consts(out.numpy().dtype), binning.balanced_order(C * tiles_x * tiles_y),
+                                           out.numpy(), out_T.numpy(), vo, _np(v_alphas[..., 0]),
+                                           raster_backward.pair_slots(gauss_pairs), pair_grads)
         v_means2d = torch.empty((C, N, 2), dtype=dt)
         v_conics = torch.empty((C, N, 3), dtype=dt)
         v_colors = torch.empty(colors.shape, dtype=dt)
         v_opac = torch.empty(opacities.shape, dtype=dt)
-        R.reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d.numpy(), v_conics.numpy(),
-                       v_colors.numpy(), v_opac.numpy())
+        raster_backward.reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d.numpy(), v_conics.numpy(),
+                                     v_colors.numpy(), v_opac.numpy())
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[4]:
             v_bg = (v_out * out_T[..., None]).sum(dim=(1, 2))
@@ -134,7 +136,7 @@ class _Antialias(torch.autograd.Function):
     @staticmethod
     def forward(ctx, conics, opacities, eps2d):
         out = torch.empty(conics.shape[:2], dtype=conics.dtype)
-        P.antialias_opacities(_np(conics), _np(opacities), out.numpy(), float(eps2d))
+        projection.antialias_opacities(_np(conics), _np(opacities), out.numpy(), float(eps2d))
         ctx.save_for_backward(conics, opacities)
         ctx.eps2d = float(eps2d)
         return out
@@ -150,11 +152,11 @@ class _Antialias(torch.autograd.Function):
         return v_conics, v_op, None
 
 
-def antialias(conics, opacities, eps2d=P.BLUR):
+def antialias(conics, opacities, eps2d=projection.BLUR):
     return _Antialias.apply(conics, opacities, eps2d)
 
 
-def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d=P.BLUR):
+def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d=projection.BLUR):
     return _Project.apply(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d)
 
 
@@ -163,12 +165,12 @@ def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, wi
 
 
 class _SH(torch.autograd.Function):
-    """SH colours of N Gaussians seen in C views (:mod:`._numba_sh`): dirs [C,N,3], coeffs [N,K,3]."""
+    """SH colours of N Gaussians seen in C views (:mod:`.numba_sh`): dirs [C,N,3], coeffs [N,K,3]."""
 
     @staticmethod
     def forward(ctx, degree, dirs, coeffs):
         out = torch.empty(dirs.shape, dtype=dirs.dtype)
-        S.sh_forward(int(degree), _np(dirs), _np(coeffs), out.numpy())
+        sh_kernels.sh_forward(int(degree), _np(dirs), _np(coeffs), out.numpy())
         ctx.save_for_backward(dirs, coeffs)
         ctx.degree = int(degree)
         return out
@@ -178,7 +180,8 @@ class _SH(torch.autograd.Function):
         dirs, coeffs = ctx.saved_tensors
         v_dirs = torch.empty(dirs.shape, dtype=dirs.dtype)
         v_coeffs = torch.empty(coeffs.shape, dtype=coeffs.dtype)
-        S.sh_backward(ctx.degree, _np(dirs), _np(coeffs), _np(v_out), v_dirs.numpy(), v_coeffs.numpy())
+        sh_kernels.sh_backward(ctx.degree, _np(dirs), _np(coeffs), _np(v_out), v_dirs.numpy(),
+                               v_coeffs.numpy())
         return None, v_dirs, v_coeffs
 
 

@@ -1,6 +1,6 @@
 """Plain PyTorch reference backend (autograd, any device). It is the oracle in tests.
 
-Same math as the numba kernels (see ``_numba_raster`` for the compositing rule), written with
+Same math as the numba kernels (see ``numba_raster`` for the compositing rule), written with
 dense tensor ops: per 16x16 tile, every Gaussian whose rectangle meets the tile is evaluated on
 every pixel of the tile (``tile_size=None`` evaluates every Gaussian on every pixel).
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import torch
 
-from ._numba_project import BLUR
-from ._numba_raster import ALPHA_MAX, ALPHA_MIN, T_MIN
+from .numba_project import BLUR
+from .numba_raster import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 
 def _quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
@@ -30,7 +30,7 @@ def _quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
 
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d=BLUR):
     """EWA projection; returns means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N,2]
-    int32 and rects [C,N,4] int32 (see ``_numba_project``)."""
+    int32 and rects [C,N,4] int32 (see ``numba_project``)."""
     R = _quat_to_rotmat(quats)  # [N,3,3]
     M = R * scales[:, None, :]  # R S
     Rw = viewmats[:, :3, :3]  # [C,3,3]
@@ -88,7 +88,7 @@ def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, 
 
 def antialias(conics, opacities, eps2d=BLUR):
     """Opacities ``[C,N]`` of the antialiased mode: ``opacities [Co,N]`` times ``sqrt(det(I - eps2d conic))``
-    (see ``_numba_project.antialias_opacities``); differentiable in both inputs. The factor is a difference
+    (see ``numba_project.antialias_opacities``); differentiable in both inputs. The factor is a difference
     of nearly equal terms for sub-pixel Gaussians, so it is formed in float64 as the kernel does."""
     ca, cb, cc = conics.double().unbind(-1)
     x = 1.0 - eps2d * (ca + cc) + eps2d * eps2d * (ca * cc - cb * cb)

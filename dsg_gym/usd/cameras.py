@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom
 
-from dsg_gym.usd.transforms import check_rigid, from_gf_matrix, rigid_inverse, to_gf_matrix
+from dsg_gym.poses import check_rigid, rigid_inverse
+from dsg_gym.usd.transforms import from_gf_matrix, to_gf_matrix
 
 __all__ = ["SENSOR_WIDTH_MM", "UsdCamera", "cameras_from_arrays", "check_camera", "write_camera",
            "read_camera", "usd_lens_from_K", "K_from_usd_lens"]

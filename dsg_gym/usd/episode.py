@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dsg_gym.usd.transforms import check_rigid, quat_to_rotmat
+from dsg_gym.poses import check_rigid, quat_to_rotmat
 
 __all__ = ["Episode", "EpisodeRecorder"]
 

@@ -31,7 +31,8 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdVol, Vt
 
 from dsg_gym.gaussians import GaussianSet
-from dsg_gym.usd.transforms import quat_to_rotmat, usd_to_wxyz, wxyz_to_usd
+from dsg_gym.poses import quat_to_rotmat
+from dsg_gym.usd.transforms import usd_to_wxyz, wxyz_to_usd
 
 __all__ = ["FEATURES_PRIMVAR", "LABELS_PRIMVAR", "EXTENT_SIGMAS", "write_splats", "read_splats",
            "splat_extent"]

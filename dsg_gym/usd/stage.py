@@ -32,9 +32,7 @@ name with invalid characters replaced by ``_``; the original is kept in the prim
 
 from __future__ import annotations
 
-import os
 import re
-import secrets
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,11 +41,12 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt
 
 from dsg_gym.gaussians import GaussianSet
+from dsg_gym.io.atomic import atomic_path
+from dsg_gym.poses import check_rigid, quat_hemisphere_continuous, rotmat_to_quat
 from dsg_gym.usd.cameras import UsdCamera, check_camera, read_camera, write_camera
 from dsg_gym.usd.collider import MIN_THICKNESS_M, box_mesh, convex_hull_mesh, write_collider
 from dsg_gym.usd.episode import Episode
 from dsg_gym.usd.splats import read_splats, write_splats
-from dsg_gym.usd.transforms import check_rigid, quat_hemisphere_continuous, rotmat_to_quat
 
 __all__ = ["UsdObject", "StageObject", "StageContents", "export_stage", "read_stage", "SUFFIXES",
            "GRAVITY_M_S2", "TABLE_THICKNESS_M", "FORMAT_VERSION"]
@@ -256,9 +255,8 @@ def export_stage(
     up-axis extent may be zero at the table top) adds a static box collider ``/World/Table``
     extending ``TABLE_THICKNESS_M`` below the top.
 
-    The stage is built in memory and written to a hidden temporary file in the same folder,
-    which is then renamed over ``path`` (``os.replace``): readers never see a partial file and
-    no temporary file is left behind on failure. Invalid input raises ``ValueError`` naming
+    The stage is built in memory and written atomically (:mod:`dsg_gym.io.atomic`): readers never
+    see a partial file and no temporary file is left behind on failure. Invalid input raises ``ValueError`` naming
     the problem (wrong extension, non-rigid or non-finite pose, episode shape mismatch, ...).
     """
     path = _check_path(path)
@@ -294,14 +292,9 @@ def export_stage(
     stage = Usd.Stage.CreateInMemory(f"dsg{path.suffix}")
     _build(stage, background, objects, poses, cameras, mpu, up_axis, kpu, episode, table_bounds)
 
-    tmp = path.with_name(f".{path.stem}.{secrets.token_hex(6)}.tmp{path.suffix}")
-    try:
+    with atomic_path(path, suffix=path.suffix) as tmp:  # USD picks the file format by extension
         if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"export_stage: USD could not write {str(tmp)!r}")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 
@@ -312,7 +305,7 @@ def _pose_at(xformable: UsdGeom.Xformable, time: Usd.TimeCode) -> np.ndarray:
     return np.array(xformable.GetLocalTransformation(time), dtype=np.float64).T.copy()
 
 
-def _read_object(prim: Usd.Prim, stage: Usd.Stage) -> StageObject:
+def _read_object(prim: Usd.Prim) -> StageObject:
     splats = prim.GetChild("Splats")
     collider = UsdGeom.Mesh(prim.GetChild("Collider"))
     if not splats or not collider:
@@ -391,7 +384,7 @@ def read_stage(path) -> StageContents:
     table_vertices = np.array(table.GetPointsAttr().Get(), np.float64) if table else None
     return StageContents(
         background=read_splats(background),
-        objects=[_read_object(p, stage) for p in object_prims],
+        objects=[_read_object(p) for p in object_prims],
         cameras=cameras,
         metadata=metadata,
         episode=episode,

@@ -19,7 +19,7 @@ import torch
 
 from dsg_gym import poses as P
 from dsg_gym.splat import rasterize
-from dsg_gym.splat.scenes import intrinsics
+from benchmarks.splat_scenes import intrinsics
 
 LD = np.longdouble
 #: whether ``np.longdouble`` really is more precise than float64 here (it is not on e.g. macOS arm64)

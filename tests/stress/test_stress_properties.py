@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from dsg_gym import geometry as G
 from dsg_gym import poses as P
 from dsg_gym.splat import rasterize
-from dsg_gym.splat.scenes import intrinsics
+from benchmarks.splat_scenes import intrinsics
 
 
 def profile(n: int):

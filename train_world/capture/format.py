@@ -19,13 +19,13 @@ import contextlib
 import io
 import json
 import os
-import shutil
-import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
+from dsg_gym.io.atomic import atomic_dir, atomic_write_bytes
 
 __all__ = [
     "DEPTH_SCALE",
@@ -59,21 +59,6 @@ def encode_png(array: np.ndarray, compress_level: int = PNG_COMPRESS_LEVEL) -> b
     buf = io.BytesIO()
     img.save(buf, format="PNG", compress_level=int(compress_level), optimize=False)
     return buf.getvalue()
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def _is_scalar(v: object) -> bool:
@@ -114,23 +99,8 @@ def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterato
     out = Path(out).absolute()
     if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
         raise FileExistsError(f"{out}: already exists; pass --overwrite (overwrite=True) to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging.", dir=out.parent))
-    try:
+    with atomic_dir(out, replace=True) as stage:
         yield stage
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
-    trash = None
-    if out.exists():
-        if out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
-        else:
-            trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
-            os.replace(out, trash / "old")
-    os.replace(stage, out)
-    if trash is not None:
-        shutil.rmtree(trash, ignore_errors=True)
 
 
 def transforms_header(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> dict:

@@ -241,9 +241,9 @@ def import_transforms(
     src = Path(src)
     tj = src / "transforms.json" if src.is_dir() else src
     base = tj.parent
-    from train_world.capture.loader import _read_json
+    from train_world.capture.files import read_json
 
-    meta = _read_json(tj)
+    meta = read_json(tj)
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
         raise CaptureError(f"{tj}: expected an object with a non-empty 'frames' list")
     header = {k: meta[k] for k in _INTRINSIC_KEYS if k in meta}

@@ -15,7 +15,6 @@ Bad input raises :class:`CaptureError` (a ``ValueError``) naming the file and th
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,19 +23,15 @@ from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image
 
 from train_world.capture.cameras import check_rigid, focal_from_fov, intrinsics_matrix, opengl_c2w_to_viewmat
+from train_world.capture.files import CaptureError, read_depth, read_json, read_mask, read_rgb
 from train_world.capture.format import DEPTH_SCALE, FORMAT_NAME, FORMAT_VERSION
 
 __all__ = ["Capture", "CaptureError", "ObjectInfo", "Views", "load_blender", "load_capture", "load_views"]
 
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
-
-
-class CaptureError(ValueError):
-    """Malformed capture input; the message starts with the offending file."""
 
 
 @dataclass(frozen=True)
@@ -120,103 +115,6 @@ class Capture:
 
 
 # --------------------------------------------------------------------------------------------- files
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as e:
-        raise CaptureError(f"{path}: file not found") from e
-    except (OSError, UnicodeDecodeError) as e:
-        raise CaptureError(f"{path}: cannot read ({e})") from e
-    except json.JSONDecodeError as e:
-        raise CaptureError(f"{path}: invalid JSON ({e})") from e
-
-
-def _open_image(path: Path, what: str) -> Image.Image:
-    if not path.is_file():
-        raise CaptureError(f"{path}: {what} file not found")
-    try:
-        img = Image.open(path)
-        img.load()
-    except Exception as e:  # Pillow raises many types for corrupt files
-        raise CaptureError(f"{path}: cannot read {what} ({e})") from e
-    return img
-
-
-def _read_rgb(path: Path, background: Sequence[float], downscale: int) -> tuple[np.ndarray, tuple[int, int]]:
-    """RGB float32 [H,W,3] (downscaled) and the original (width, height)."""
-    img = _open_image(path, "image")
-    orig = img.size
-    if img.mode in ("I", "I;16", "F"):
-        raise CaptureError(f"{path}: image has mode {img.mode}; expected an 8-bit RGB(A) or grey image")
-    has_alpha = img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info)
-    img = img.convert("RGBA" if has_alpha else "RGB")
-    if downscale > 1:
-        img = img.resize((img.width // downscale, img.height // downscale), Image.Resampling.BOX)
-    a = np.asarray(img, dtype=np.float32) / 255.0
-    if has_alpha:
-        alpha = a[..., 3:4]
-        a = a[..., :3] * alpha + np.asarray(background, dtype=np.float32)[:3] * (1.0 - alpha)
-    return np.ascontiguousarray(a[..., :3]), orig
-
-
-def _check_size(img: Image.Image, path: Path, what: str, image_path: Path, full: tuple[int, int]) -> None:
-    if img.size != full:
-        raise CaptureError(
-            f"{path}: {what} is {img.width}x{img.height} but its image {image_path.name} is "
-            f"{full[0]}x{full[1]} (image/{what} size mismatch)"
-        )
-
-
-def _read_mask(
-    path: Path,
-    image_path: Path,
-    full: tuple[int, int],
-    size: tuple[int, int],
-    downscale: int,
-    valid_ids: np.ndarray | None,
-) -> np.ndarray:
-    img = _open_image(path, "mask")
-    _check_size(img, path, "mask", image_path, full)
-    if img.mode in ("RGB", "RGBA"):
-        a = np.asarray(img)
-        if not (np.array_equal(a[..., 0], a[..., 1]) and np.array_equal(a[..., 0], a[..., 2])):
-            raise CaptureError(f"{path}: mask is a colour image; expected one channel of object ids")
-        img = Image.fromarray(np.ascontiguousarray(a[..., 0]))
-    elif img.mode == "1":
-        img = img.convert("L").point(lambda v: 1 if v else 0)
-    elif img.mode in ("I", "I;16"):
-        a = np.asarray(img)
-        if a.max(initial=0) > 255 or a.min(initial=0) < 0:
-            raise CaptureError(f"{path}: mask ids must be in 0..255")
-        img = Image.fromarray(a.astype(np.uint8))
-    elif img.mode not in ("L", "P"):
-        raise CaptureError(f"{path}: unsupported mask mode {img.mode}")
-    if downscale > 1:
-        img = img.resize(size, Image.Resampling.NEAREST)
-    m = np.asarray(img, dtype=np.uint8)
-    if valid_ids is not None:
-        present = np.unique(m)
-        bad = np.setdiff1d(present, np.append(valid_ids, 0))
-        if bad.size:
-            raise CaptureError(
-                f"{path}: mask contains ids {bad.tolist()} that are not objects in scene.json "
-                f"(known ids: {sorted(int(i) for i in valid_ids)}; 0 = background)"
-            )
-    return np.ascontiguousarray(m)
-
-
-def _read_depth(
-    path: Path, image_path: Path, full: tuple[int, int], size: tuple[int, int], downscale: int, scale: float
-) -> np.ndarray:
-    img = _open_image(path, "depth")
-    _check_size(img, path, "depth", image_path, full)
-    if img.mode not in ("I;16", "I", "L"):
-        raise CaptureError(f"{path}: depth must be a 16-bit grey PNG (millimetres), got mode {img.mode}")
-    if downscale > 1:
-        img = img.resize(size, Image.Resampling.NEAREST)
-    return np.asarray(img).astype(np.float32) * np.float32(scale)
-
-
 def _resolve(base: Path, rel: Any, blender_ext: str | None, root: Path, where: str, key: str) -> Path:
     """``rel`` (a frame's ``file_path``, ``mask_path`` or ``depth_path``) as a path under ``base``; a capture
     names only files inside its own folder ``root``, so any other path is refused (nothing outside is read)."""
@@ -287,7 +185,7 @@ def load_views(
     ``root``: the folder every frame's files must lie in (default: the one holding ``transforms_json``).
     """
     tj = Path(transforms_json)
-    meta = _read_json(tj)
+    meta = read_json(tj)
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
         raise CaptureError(f"{tj}: expected an object with a non-empty 'frames' list")
     frames = meta["frames"]
@@ -322,7 +220,7 @@ def load_views(
                 str(e) if str(e).startswith(str(tj)) else f"{where}.transform_matrix: {e}"
             ) from e
         ipath = _resolve(base, fr["file_path"], blender_ext, root, where, "file_path")
-        rgb, (full_w, full_h) = _read_rgb(ipath, background, downscale)
+        rgb, (full_w, full_h) = read_rgb(ipath, background, downscale)
         h, w = rgb.shape[:2]
         if size is None:
             size = (w, h)
@@ -339,7 +237,7 @@ def load_views(
             if "mask_path" not in fr:
                 raise CaptureError(f"{where}: has no mask_path but other frames do (mask count mismatch)")
             masks.append(
-                _read_mask(
+                read_mask(
                     _resolve(base, fr["mask_path"], None, root, where, "mask_path"), ipath, (full_w, full_h), (w, h), downscale, ids
                 )
             )
@@ -347,7 +245,7 @@ def load_views(
             if "depth_path" not in fr:
                 raise CaptureError(f"{where}: has no depth_path but other frames do (depth count mismatch)")
             depths.append(
-                _read_depth(
+                read_depth(
                     _resolve(base, fr["depth_path"], None, root, where, "depth_path"),
                     ipath,
                     (full_w, full_h),
@@ -461,7 +359,7 @@ def load_capture(
     """Load a capture folder (``scene.json`` + ``<state>/transforms.json``), all states or the ones named."""
     root = Path(path)
     src = root / "scene.json"
-    meta = _read_json(src)
+    meta = read_json(src)
     if not isinstance(meta, dict):
         raise CaptureError(f"{src}: expected a JSON object")
     _check_format(meta, src)

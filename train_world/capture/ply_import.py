@@ -16,7 +16,7 @@
 
 Identity features (``obj_dc_*``) whose width differs from the base world's are replaced by zeros of the base's
 width; the classifier gets a zero row for a new object. The world file is written with
-:func:`train_world.world_writer.write_world` (atomic).
+:func:`dsg_gym.world.write_world` (atomic).
 """
 
 from __future__ import annotations
@@ -30,10 +30,11 @@ from types import MappingProxyType
 import numpy as np
 import torch
 
+from dsg_gym.cameras import Cameras, orbit_eyes
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.geometry import intrinsics_from_fov, look_at_viewmat
 from dsg_gym.io import read_ply
-from dsg_gym.world import Cameras, World, WorldObject, load_world
+from dsg_gym.world import World, WorldObject, load_world
 from dsg_gym.world_model import WorldModel
 
 __all__ = ["world_from_ply", "orbit_cameras", "world_from_model", "ROLES"]
@@ -64,20 +65,10 @@ def orbit_cameras(means: np.ndarray, *, num_views: int = 16, width: int = 256, h
         else:
             up = np.array([0.0, 0.0, 1.0])
     up = np.asarray(up, dtype=np.float64)
-    up = up / np.linalg.norm(up)
-    a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    a /= np.linalg.norm(a)
-    b = np.cross(up, a)
     dist = 1.05 * radius / math.sin(math.radians(0.5 * fovy_deg))
-    eyes = []
-    for i in range(num_views):
-        elev = math.radians(20.0 if i % 2 == 0 else 45.0)
-        az = 2 * math.pi * i / num_views
-        d = math.cos(elev) * (math.cos(az) * a + math.sin(az) * b) + math.sin(elev) * up
-        eyes.append(centre + dist * d)
-    eye_t = torch.tensor(np.array(eyes), dtype=torch.float64)
-    vm = look_at_viewmat(eye_t, torch.tensor(centre, dtype=torch.float64)[None],
-                         torch.tensor(up, dtype=torch.float64)[None]).numpy()
+    eyes = orbit_eyes(centre, up, dist, (math.radians(20.0), math.radians(45.0)), num_views)
+    vm = look_at_viewmat(torch.tensor(eyes, dtype=torch.float64), torch.tensor(centre, dtype=torch.float64)[None],
+                         torch.tensor(up / np.linalg.norm(up), dtype=torch.float64)[None]).numpy()
     K = intrinsics_from_fov(math.radians(fovy_deg), width, height, dtype=torch.float64).numpy()  # noqa: N806
     return Cameras(vm.astype(np.float32), np.repeat(K[None], num_views, 0).astype(np.float32), width, height)
 

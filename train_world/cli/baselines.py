@@ -16,7 +16,7 @@ def main(argv: list[str] | None = None) -> int:
     import sys
     import time
 
-    from train_world.world_writer import write_world
+    from dsg_gym.world import write_world
 
     p = argparse.ArgumentParser(prog="python -m train_world.cli.baselines", description=_lib.__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)

@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         world = load_world(a.world)
         log = None if a.quiet else (lambda msg: print(f"dsg-compact: {msg}", file=sys.stderr, flush=True))
         out, report = compact_world(world, cfg, capture=a.capture, log=log)
-        from train_world.world_writer import write_world
+        from dsg_gym.world import write_world
 
         write_world(a.out, out)
     except (ValueError, OSError) as e:

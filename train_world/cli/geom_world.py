@@ -9,7 +9,7 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m train_world.cli.geom_world --scene two_blocks --out assets/worlds/default_geom.dsgworld``"""
     import argparse
 
-    from train_world.world_writer import write_world
+    from dsg_gym.world import write_world
 
     ap = argparse.ArgumentParser(description="Write the geometry world of a synthetic scene as a world file.")
     ap.add_argument("--scene", default="two_blocks")

@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--object-name needs --as object")
     if min(args.views, args.width, args.height) < 1:
         ap.error("--views, --width and --height must be positive")
-    from train_world.world_writer import write_world
+    from dsg_gym.world import write_world
 
     try:
         world = world_from_ply(args.ply, args.base, args.role, object_name=args.object_name,

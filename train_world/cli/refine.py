@@ -27,8 +27,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     import json
 
-    from dsg_gym.world import load_world
-    from train_world.world_writer import write_world
+    from dsg_gym.world import load_world, write_world
 
     args = _parser().parse_args(argv)
     try:

@@ -330,7 +330,7 @@ def main_two_state(argv: list[str] | None = None) -> int:
         world = trainer.world()
         views = {d.state: StateViews(d.images, d.viewmats, d.Ks) for d in (trainer.data1, trainer.data2)}
         world, refined = refine_world(world, views, refine, progress=not args.quiet)
-        from train_world.world_writer import write_world
+        from dsg_gym.world import write_world
 
         write_world(args.out, world)
     except (TrainingDiverged, FloatingPointError) as e:

@@ -97,7 +97,7 @@ class CaptureCheck:
 
     def _psnr(self, w: World) -> dict[str, float]:
         from train_world.eval.evaluate import evaluate
-        from train_world.world_writer import write_world
+        from dsg_gym.world import write_world
 
         self.n += 1
         path = write_world(self.tmp / f"candidate_{self.n}.dsgworld", w)

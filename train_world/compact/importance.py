@@ -30,23 +30,23 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from dsg_gym.cameras import look_at
 from dsg_gym.gaussians import GaussianSet
-from dsg_gym.splat import _numba_bins as Bn
-from dsg_gym.splat import _numba_incremental as I
-from dsg_gym.splat import _numba_project as P
-from dsg_gym.splat import _numba_raster as R
+from dsg_gym.splat import numba_bins as binning
+from dsg_gym.splat import numba_incremental as incr
+from dsg_gym.splat import numba_project as projection
+from dsg_gym.splat import numba_raster as raster
 
 __all__ = [
     "Importance",
     "SceneCameras",
     "gaussian_importance",
-    "look_at",
     "scene_cameras",
     "sphere_cameras",
     "view_colors",
 ]
 
-TILE = R.TILE
+TILE = raster.TILE
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ class Importance:
     num_cameras: int
 
 
-@nb.njit(parallel=True, cache=True, fastmath=R._FASTMATH)
+@nb.njit(parallel=True, cache=True, fastmath=raster.FASTMATH)
 def _tile_scores(
     means2d,
     conics,
@@ -97,7 +97,7 @@ def _tile_scores(
             continue
         c = ct // T
         co = 0 if opacities.shape[0] == 1 else c
-        px0, py0, pw, ph, acc, trans, row_done, xc, yc = R.tile_state(
+        px0, py0, pw, ph, acc, trans, row_done, xc, yc = raster.tile_state(
             ct - c * T, tiles_x, width, height, 3, np.float32
         )
         npix = pw * ph
@@ -106,7 +106,7 @@ def _tile_scores(
             if ndone == npix:
                 break
             g = tile_gauss[s]
-            ndone += R.splat_forward(
+            ndone += raster.splat_forward(
                 consts,
                 means2d[c, g, 0],
                 means2d[c, g, 1],
@@ -154,31 +154,31 @@ def _tile_scores(
             y1 = min(rects[c, g, 3], py0 + ph - 1) - py0
             xr0 = max(rects[c, g, 0], px0)
             xr1 = min(rects[c, g, 1], px0 + pw - 1)
-            if xr1 < xr0 or R._rows_done(row_done, y0, y1, xr0 - px0, xr1 - px0):
+            if xr1 < xr0 or raster.rows_finished(row_done, y0, y1, xr0 - px0, xr1 - px0):
                 continue
             col = colors[c, g]
             ws = 0.0
             es = 0.0
-            rect_bits = R._bits(xr0 - px0, xr1 - px0)
+            rect_bits = raster.column_bits(xr0 - px0, xr1 - px0)
             for ly in range(y0, y1 + 1):
                 if row_done[ly] & rect_bits == rect_bits:
                     continue
                 dy = yc[ly] - v
-                x0, x1 = R._row_span(
+                x0, x1 = raster.row_pixel_range(
                     conics[c, g, 0], cb, conics[c, g, 2], u, np.float64(dy), logo, xr0, xr1, px0
                 )
                 if x1 < x0:
                     continue
-                todo = R._bits(x0, x1) & ~row_done[ly]  # unfinished pixels, as splat_forward visits them
+                todo = raster.column_bits(x0, x1) & ~row_done[ly]  # unfinished pixels, as splat_forward visits them
                 if todo == 0:
                     continue
                 bdy = cb * dy
                 cdy = cc_ * dy * dy
                 while todo != 0:
-                    lx, todo = R._pop_bit(todo)
+                    lx, todo = raster.pop_lowest_bit(todo)
                     p = ly * TILE + lx
                     tp = trans[p]
-                    code, alpha, _, nt = R.pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp, row_done, ly, lx)
+                    code, alpha, _, nt = raster.pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp, row_done, ly, lx)
                     if code < 2:
                         ndone += code
                         continue
@@ -223,7 +223,7 @@ def view_colors(g: GaussianSet, viewmats: np.ndarray) -> np.ndarray:
     sh = np.ascontiguousarray(g.sh, np.float32)
     means = np.ascontiguousarray(g.means, np.float32)
     for c, pos in enumerate(_campos(viewmats)):
-        I.sh_to_rgb(means, np.eye(3), pos, sh, g.sh_degree, out[c])
+        incr.sh_to_rgb(means, np.eye(3), pos, sh, g.sh_degree, out[c])
     return out
 
 
@@ -239,7 +239,7 @@ def gaussian_importance(
     far_plane: float = 1e10,
     chunk: int = 8,
     rasterize_mode: str = "classic",
-    eps2d: float = P.BLUR,
+    eps2d: float = projection.BLUR,
 ) -> Importance:
     """Scores of every Gaussian of ``g`` (rendered alone, over ``background``) in the cameras
     ``viewmats [C,4,4]`` (OpenCV world-to-camera), ``Ks [C,3,3]``; ``chunk`` cameras per kernel call;
@@ -260,7 +260,7 @@ def gaussian_importance(
     opac = np.ascontiguousarray(g.opacities, np.float32)[None]
     bg = np.asarray(background, np.float64).reshape(3)
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    consts = R.make_consts(np.float32)
+    consts = raster.make_consts(np.float32)
     for a in range(0, len(viewmats), max(1, int(chunk))):
         vm, K = viewmats[a : a + chunk], Ks[a : a + chunk]
         C = len(vm)
@@ -270,7 +270,7 @@ def gaussian_importance(
             np.empty((C, n, 2), np.int32),
             np.empty((C, n, 4), np.int32),
         )
-        P.project_forward(
+        projection.project_forward(
             means,
             quats,
             scales,
@@ -286,15 +286,15 @@ def gaussian_importance(
             dp,
             radii,
             rects,
-            R.ALPHA_MIN,
+            raster.ALPHA_MIN,
             float(eps2d),
         )
         op = opac
         if rasterize_mode == "antialiased":  # per-camera opacities after the 2D Mip filter
             op = np.empty((C, n), np.float32)
-            P.antialias_opacities(cn, opac, op, float(eps2d))
-        order, counts = Bn.depth_order(dp.view(np.uint32), rects)
-        t_off, t_gauss, g_off, g_pairs = Bn.bin_gaussians(rects, order, counts, tiles_x, tiles_y)
+            projection.antialias_opacities(cn, opac, op, float(eps2d))
+        order, counts = binning.depth_order(dp.view(np.uint32), rects)
+        t_off, t_gauss, g_off, g_pairs = binning.bin_gaussians(rects, order, counts, tiles_x, tiles_y)
         pair_out = np.zeros((len(t_gauss), 2), np.float64)
         _tile_scores(
             m2,
@@ -309,7 +309,7 @@ def gaussian_importance(
             int(width),
             int(height),
             consts,
-            Bn.balanced_order(C * tiles_x * tiles_y),
+            binning.balanced_order(C * tiles_x * tiles_y),
             bg,
             pair_out,
         )
@@ -343,18 +343,13 @@ class SceneCameras:
         return int(self.viewmats.shape[0])
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """OpenCV world-to-camera ``[4,4]`` float64 at ``eye`` looking at ``target`` (image up ~ ``up``)."""
+def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """:func:`dsg_gym.cameras.look_at`, also when looking along ``up``: then any perpendicular is the image up."""
     z = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
     z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-6:  # looking along up: any perpendicular will do
-        x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    vm = np.eye(4)
-    vm[:3, :3] = np.stack([x, np.cross(z, x), z])
-    vm[:3, 3] = -vm[:3, :3] @ np.asarray(eye, np.float64)
-    return vm
+    if np.linalg.norm(np.cross(z, up)) < 1e-6:
+        up = [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0]
+    return look_at(eye, target, up)
 
 
 def _axes_target(campos: np.ndarray, fwd: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -422,7 +417,7 @@ def scene_cameras(
         for j in range(per_ring):
             az = 2 * np.pi * (j + 0.5 * (r % 2)) / per_ring
             d = np.cos(el) * (np.cos(az) * e1 + np.sin(az) * e2) + np.sin(el) * up
-            extra.append(look_at(target + radius * d, target, up))
+            extra.append(_look_at(target + radius * d, target, up))
     all_vm = np.concatenate([vm, np.array(extra).reshape(-1, 4, 4)])
     all_K = np.concatenate([Ks, np.repeat(Ks[:1], len(extra), 0)])
     return SceneCameras(
@@ -448,4 +443,4 @@ def sphere_cameras(center: np.ndarray, radius: float, n: int, up=(0.0, 0.0, 1.0)
     dirs = np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
     up = np.asarray(up, np.float64)
     c = np.asarray(center, np.float64)
-    return np.stack([look_at(c + radius * d, c, up) for d in dirs]) if n else np.zeros((0, 4, 4))
+    return np.stack([_look_at(c + radius * d, c, up) for d in dirs]) if n else np.zeros((0, 4, 4))

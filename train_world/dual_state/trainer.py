@@ -474,6 +474,6 @@ class DualTrainer:
         return merged_world(self.merge_inputs(), extra_metadata)
 
     def write_world(self, path: str | Path, extra_metadata: dict[str, Any] | None = None) -> Path:
-        from train_world.world_writer import write_world
+        from dsg_gym.world import write_world
 
         return write_world(path, self.world(extra_metadata))

@@ -23,11 +23,11 @@ import numpy as np
 import torch
 
 from dsg_gym.sh_basis import rotate_sh
-from dsg_gym.world import Cameras, World
+from dsg_gym.cameras import Cameras
+from dsg_gym.world import World, build_world
 from train_world.dual_state.merge import co_paste_background
 from train_world.dual_state.transfer import gaussian_transforms, relative_transforms
 from train_world.single_state.field import PARAM_NAMES, SegmentedField, rigid_transform_gaussians
-from train_world.world_writer import build_world
 
 __all__ = ["MergeInputs", "choose_object_sources", "merged_field", "merged_world"]
 

@@ -19,7 +19,7 @@ import torch
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
-from train_world.capture.format import atomic_write_bytes
+from dsg_gym.io.atomic import atomic_write_bytes
 
 __all__ = [
     "CHECKPOINT_FORMAT",

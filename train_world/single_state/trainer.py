@@ -19,7 +19,8 @@ import torch
 from tqdm import tqdm
 
 from dsg_gym.splat.finite import all_finite
-from dsg_gym.world import Cameras, World
+from dsg_gym.cameras import Cameras
+from dsg_gym.world import World, build_world, write_world
 from train_world.single_state.checkpoint import (
     load_checkpoint,
     optimizer_from_tensors,
@@ -45,7 +46,6 @@ from train_world.single_state.losses import (
 )
 from train_world.single_state.presets import TrainConfig
 from train_world.single_state.strategy import DensifyStrategy, StrategyConfig
-from train_world.world_writer import build_world, write_world
 
 __all__ = ["Trainer", "TrainingDiverged", "check_gradients", "make_optimizers", "means_lr"]
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dsg_gym.cameras import look_at
 from train_world.synth.spec import OrbitSpec
 
 __all__ = ["look_at_opengl", "orbit_c2w", "smooth_wobble"]
@@ -15,16 +16,11 @@ __all__ = ["look_at_opengl", "orbit_c2w", "smooth_wobble"]
 
 def look_at_opengl(eye, target, up=(0.0, 0.0, 1.0), roll: float = 0.0) -> np.ndarray:
     """4x4 OpenGL camera-to-world matrix at ``eye`` looking at ``target`` (``roll`` radians about the view
-    axis, positive turns the image clockwise)."""
+    axis, positive turns the image clockwise): the axes of :func:`dsg_gym.cameras.look_at` with y and z
+    flipped, then rolled."""
     eye = np.asarray(eye, dtype=np.float64)
-    f = np.asarray(target, dtype=np.float64) - eye
-    f /= np.linalg.norm(f)
-    x = np.cross(f, np.asarray(up, dtype=np.float64))
-    nx = np.linalg.norm(x)
-    if nx < 1e-9:
-        raise ValueError("look_at_opengl: view direction is parallel to up")
-    x /= nx
-    y = np.cross(x, f)
+    rows = look_at(eye, target, up)[:3, :3]  # OpenCV camera axes in world coordinates: x, y (down), z (forward)
+    x, y, f = rows[0], -rows[1], rows[2]
     c, s = np.cos(roll), np.sin(roll)
     x, y = c * x + s * y, -s * x + c * y
     m = np.eye(4)

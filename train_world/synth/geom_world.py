@@ -27,7 +27,8 @@ import numpy as np  # noqa: E402
 
 from dsg_gym.gaussians import GaussianSet  # noqa: E402
 from dsg_gym.poses import rotmat_to_quat  # noqa: E402
-from dsg_gym.world_model import Cameras, TableBounds, WorldModel  # noqa: E402
+from dsg_gym.cameras import Cameras, intrinsics_from_fov  # noqa: E402
+from dsg_gym.world_model import TableBounds, WorldModel  # noqa: E402
 from train_world.synth.build import build_scene, set_object_poses  # noqa: E402
 from train_world.synth.cameras import orbit_c2w  # noqa: E402
 from train_world.synth.generate import GenerateConfig, rng_for  # noqa: E402
@@ -222,8 +223,7 @@ def capture_cameras(scene: SceneSpec, seed: int, state: str, n: int, width: int,
         c2w = orbit_c2w(scene.cameras.train, gc.views, rng_for(seed, f"cameras/{state}"), phase)
     idx = np.linspace(0, len(c2w), n, endpoint=False).astype(int)
     c2w = c2w[idx]
-    f = 0.5 * height / np.tan(0.5 * np.deg2rad(scene.cameras.fovy_deg))
-    k = np.array([[f, 0.0, 0.5 * width], [0.0, f, 0.5 * height], [0.0, 0.0, 1.0]])
+    k = intrinsics_from_fov(scene.cameras.fovy_deg, width, height)
     return c2w, Cameras(opengl_to_viewmat(c2w), np.repeat(k[None], len(c2w), 0), width, height)
 
 
@@ -387,11 +387,10 @@ def _gaussians(model, g, pts, nrm, s, acc, ws, cfg: GeomWorldConfig, label: int)
 
 
 def to_world(model: WorldModel):
-    """The :class:`dsg_gym.world.World` of a geometry world (for :func:`train_world.world_writer.write_world`):
+    """The :class:`dsg_gym.world.World` of a geometry world (for :func:`dsg_gym.world.write_world`):
     no identity features, so the classifier is empty (``[K+1, 0]``)."""
     from types import MappingProxyType
 
-    from dsg_gym.world import Cameras as FileCameras
     from dsg_gym.world import World, WorldObject
 
     k = model.num_objects
@@ -402,7 +401,7 @@ def to_world(model: WorldModel):
         objects=MappingProxyType(objects),
         poses=MappingProxyType({s: np.asarray(p, dtype=np.float64) for s, p in model.states.items()}),
         cameras=MappingProxyType(
-            {"state1": FileCameras(cams.viewmats.astype(np.float32), cams.Ks.astype(np.float32), cams.width, cams.height)}
+            {"state1": Cameras(cams.viewmats.astype(np.float32), cams.Ks.astype(np.float32), cams.width, cams.height)}
         ),
         classifier_weight=np.zeros((k + 1, 0), np.float32),
         classifier_bias=np.zeros(k + 1, np.float32),

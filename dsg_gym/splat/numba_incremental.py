@@ -1,0 +1,510 @@
+"""Numba kernels for incremental rendering of a static background plus moving objects.
+
+The background and the objects are two Gaussian sets ``a`` and ``b``, each with its own
+projection and per-tile depth-sorted lists. A tile is composited by merging the two lists by
+depth (ties: background first, exactly like a stable sort of the concatenation
+``[background, objects]``), so a tile recomposited here equals the same tile of a full
+``rasterize`` of the concatenated scene bit for bit: both call ``splat_forward``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from .numba_bins import depth_order
+from .numba_intrinsics import borrow
+from .numba_raster import (FASTMATH, TILE, reset_tile, sigma_cutoff, span_rows, splat_forward, splat_rows, store_tile,
+                            tile_state)
+from .numba_sh import sh_basis
+
+_TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS
+assert 1 << _TILE_BITS == TILE
+
+
+@nb.njit(cache=True, inline="always")
+def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
+                    bg_colors, bg_T, acc, trans, row_done, b_rows, cover):
+    """Fill the tile pixels no object Gaussian can reach from the background-only render and mark them
+    finished; returns how many. Leaves in b_rows [>= list length, 16] each listed object Gaussian's row spans
+    (:func:`span_rows`), which its compositing reuses; cover [16] is scratch."""
+    D = acc.shape[1]
+    for ly in range(TILE):
+        cover[ly] = 0  # bit lx of row ly: an object may blend into that pixel
+    cb = 0 if b_op.shape[0] == 1 else c
+    j0 = b_off[ct]
+    for s in range(j0, b_off[ct + 1]):
+        g = b_gauss[s]
+        rows = b_rows[s - j0]
+        span_rows(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1], b_cn[c, g, 2], b_op[cb, g],
+                  b_rect[c, g, 0], b_rect[c, g, 1], b_rect[c, g, 2], b_rect[c, g, 3], px0, py0, pw, ph, yc, rows)
+        for ly in range(TILE):
+            cover[ly] |= rows[ly]
+    n = 0
+    for ly in range(ph):
+        for lx in range(pw):
+            if (cover[ly] >> lx) & 1:
+                continue
+            p = ly * TILE + lx
+            for d in range(D):
+                acc[p, d] = bg_colors[c, py0 + ly, px0 + lx, d]
+            trans[p] = bg_T[c, py0 + ly, px0 + lx]
+            row_done[ly] |= np.int64(1) << lx
+            n += 1
+    return n
+
+
+@nb.njit(cache=True)
+def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, width, height, consts, rec, rec_rect,
+               rec_rows):
+    """Gather a Gaussian set's per-tile lists into records in list order, so that compositing a tile reads
+    its Gaussians' data front to back from consecutive memory instead of gathering by index.
+
+    Inputs as ``composite_merged``'s ``b`` set (means2d [C,N,2], conics [C,N,3], opacities [Co,N], colors
+    [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and indices), the image size and the
+    compositing constants. Writes rec [E, 8 + D] float32 (u, v, conic a, b, c, opacity, depth, sigma cut-off
+    (:func:`~dsg_gym.splat.numba_raster.sigma_cutoff`), colour channels), rec_rect [E, 4] int32 and
+    rec_rows [E, 16] uint16 (the entry's row spans in its tile, :func:`span_rows`) for the E list entries.
+    """
+    T = tiles_x * tiles_y
+    D = col.shape[2]
+    for ct in range(off.shape[0] - 1):
+        c = ct // T
+        co = 0 if op.shape[0] == 1 else c
+        px0, py0, pw, ph, _, _, _, _, yc = tile_state(ct - c * T, tiles_x, width, height, 1, rec.dtype)
+        for s in range(off[ct], off[ct + 1]):
+            g = gauss[s]
+            rec[s, 0] = m2[c, g, 0]
+            rec[s, 1] = m2[c, g, 1]
+            rec[s, 2] = cn[c, g, 0]
+            rec[s, 3] = cn[c, g, 1]
+            rec[s, 4] = cn[c, g, 2]
+            rec[s, 5] = op[co, g]
+            rec[s, 6] = depth[c, g]
+            rec[s, 7] = sigma_cutoff(consts, rec[s, 5])
+            for d in range(D):
+                rec[s, 8 + d] = col[c, g, d]
+            for j in range(4):
+                rec_rect[s, j] = rect[c, g, j]
+            span_rows(consts, rec[s, 0], rec[s, 1], rec[s, 2], rec[s, 3], rec[s, 4], rec[s, 5], rect[c, g, 0],
+                      rect[c, g, 1], rect[c, g, 2], rect[c, g, 3], px0, py0, pw, ph, yc, rec_rows[s])
+
+
+@nb.njit(cache=True, inline="always", fastmath=FASTMATH)
+def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                    b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T,
+                    acc, trans, row_done, xc, yc, b_rows, cover):
+    T = tiles_x * tiles_y
+    c = ct // T
+    px0, py0, pw, ph = reset_tile(ct - c * T, tiles_x, width, height, acc, trans, row_done, xc, yc)
+    npix = pw * ph
+    cb = 0 if b_op.shape[0] == 1 else c
+    ndone = 0
+    i = a_off[ct]
+    ie = a_off[ct + 1]
+    j0 = j = b_off[ct]
+    je = b_off[ct + 1]
+    if use_cache:
+        ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
+                                bg_colors, bg_T, acc, trans, row_done, b_rows, cover)
+    while (i < ie or j < je) and ndone < npix:
+        if j >= je or (i < ie and a_rec[i, 6] <= b_depth[c, b_gauss[j]]):
+            f = a_rec[i]
+            ndone += splat_rows(consts, f[0], f[1], f[2], f[3], f[4], f[5], a_rect[i, 2], a_rect[i, 3], a_rows[i],
+                                f[8:], py0, ph, xc, yc, acc, trans, row_done, f[7])
+            i += 1
+        else:
+            g = b_gauss[j]
+            if use_cache:
+                ndone += splat_rows(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
+                                    b_cn[c, g, 2], b_op[cb, g], b_rect[c, g, 2], b_rect[c, g, 3], b_rows[j - j0],
+                                    b_col[c, g], py0, ph, xc, yc, acc, trans, row_done)
+            else:
+                ndone += splat_forward(consts, b_m2[c, g, 0], b_m2[c, g, 1], b_cn[c, g, 0], b_cn[c, g, 1],
+                                       b_cn[c, g, 2], b_op[cb, g], b_rect[c, g, 0], b_rect[c, g, 1],
+                                       b_rect[c, g, 2], b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc,
+                                       acc, trans, row_done)
+            j += 1
+    store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
+
+
+@nb.njit(cache=True, fastmath=FASTMATH)
+def _composite_tiles(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T, acc,
+                     trans, row_done, xc, yc, b_rows, cover):
+    """Recomposite ``tiles`` one after the other in the scratch arrays acc [256, D], trans [256], row_done,
+    xc, yc, cover [16] and b_rows [>= longest object list with the cache, 16]. Every argument is borrowed
+    (:func:`~dsg_gym.splat.numba_intrinsics.borrow`; the caller holds them): the per-Gaussian and per-row views
+    then cost no reference counting. Per-tile allocations with their counted views made the single-threaded
+    kernel 2x slower than the threaded one run on one thread."""
+    tiles, a_rec, a_rect, a_rows, a_off = borrow(tiles), borrow(a_rec), borrow(a_rect), borrow(a_rows), borrow(a_off)
+    b_m2, b_cn, b_op, b_col, b_rect = borrow(b_m2), borrow(b_cn), borrow(b_op), borrow(b_col), borrow(b_rect)
+    b_depth, b_off, b_gauss, consts = borrow(b_depth), borrow(b_off), borrow(b_gauss), borrow(consts)
+    bg_colors, bg_T, out_colors, out_T = borrow(bg_colors), borrow(bg_T), borrow(out_colors), borrow(out_T)
+    acc, trans, row_done, xc, yc = borrow(acc), borrow(trans), borrow(row_done), borrow(xc), borrow(yc)
+    b_rows, cover = borrow(b_rows), borrow(cover)
+    for m in range(tiles.shape[0]):
+        _composite_tile(tiles[m], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                        b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,
+                        out_T, acc, trans, row_done, xc, yc, b_rows, cover)
+
+
+@nb.njit(cache=True)
+def _composite_chunk(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
+    """:func:`_composite_tiles` with scratch arrays made for ``tiles`` (once, not per tile)."""
+    D = out_colors.shape[3]
+    longest = 0
+    if use_cache:
+        for m in range(tiles.shape[0]):
+            longest = max(longest, b_off[tiles[m] + 1] - b_off[tiles[m]])
+    _composite_tiles(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
+                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T,
+                     np.empty((TILE * TILE, D), out_colors.dtype), np.empty(TILE * TILE, out_colors.dtype),
+                     np.empty(TILE, np.int64), np.empty(TILE, out_colors.dtype), np.empty(TILE, out_colors.dtype),
+                     np.empty((longest, TILE), np.uint16), np.empty(TILE, np.int64))
+
+
+@nb.njit(cache=True)
+def plan_tiles(tiles, a_off, b_off, use_cache, nthreads):
+    """Split the tiles to recomposite among ``nthreads`` threads (longest first, each to the least loaded
+    thread). A tile's estimated cost is its object-list length plus, without the background cache, its
+    background-list length (with the cache only object-covered pixels blend the background: a constant).
+    Returns ``order`` [M] (the tiles, thread by thread) and ``starts`` [nthreads + 1]."""
+    M = tiles.shape[0]
+    P = max(1, min(nthreads, M))
+    cost = np.empty(M, np.int64)
+    for m in range(M):
+        ct = tiles[m]
+        cost[m] = b_off[ct + 1] - b_off[ct] + (40 if use_cache else a_off[ct + 1] - a_off[ct])
+    rank = np.argsort(-cost, kind="mergesort")
+    owner = np.empty(M, np.int64)
+    load = np.zeros(P, np.int64)
+    count = np.zeros(P + 1, np.int64)
+    for r in range(M):
+        m = rank[r]
+        t = 0
+        for q in range(1, P):
+            if load[q] < load[t]:
+                t = q
+        owner[m] = t
+        load[t] += cost[m]
+        count[t + 1] += 1
+    starts = np.cumsum(count)
+    fill = starts[:-1].copy()
+    order = np.empty(M, np.int64)
+    for r in range(M):
+        m = rank[r]
+        order[fill[owner[m]]] = tiles[m]
+        fill[owner[m]] += 1
+    return order, starts
+
+
+@nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
+def composite_merged(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
+                     b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,
+                     out_T):
+    """Recomposite tiles (each ``c * T + t``) into out_colors/out_T; thread ``k`` takes
+    ``order[starts[k]:starts[k + 1]]`` (:func:`plan_tiles`).
+
+    Background ``a``: its tile lists as records (:func:`pack_lists`: a_rec [E, 8 + D], a_rect [E, 4], row
+    spans a_rows [E, 16]) and CSR offsets a_off [C*T+1]. Objects ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in
+    {1, C}), colors [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
+
+    ``use_cache``: reuse a background-only render (bg_colors [C,H,W,D], bg_T [C,H,W]; ignored
+    otherwise). A pixel that no object Gaussian's footprint reaches (the row spans where its alpha
+    can reach alpha_min, with the 1 px margin of ``row_pixel_range``) receives exactly the
+    background-only sequence of blends, so its accumulators are copied from the cache and marked
+    finished; only object-covered pixels are composited, and the objects' row spans computed for the
+    cover are reused. The result is the same bit for bit.
+    """
+    for k in nb.prange(starts.shape[0] - 1):
+        _composite_chunk(order[starts[k]:starts[k + 1]], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col,
+                         b_rect, b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache,
+                         bg_colors, bg_T, out_colors, out_T)
+
+
+@nb.njit(cache=True)
+def composite_merged_serial(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect,
+                            b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors,
+                            bg_T, out_colors, out_T):
+    """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`): the same
+    tiles with the same arithmetic, so the same bits."""
+    _composite_chunk(order[starts[0]:starts[-1]], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect,
+                     b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
+                     out_colors, out_T)
+
+
+@nb.njit(cache=True)
+def mark_tiles(rects, tiles_x, dirty):
+    """dirty [C, T] |= tiles touched by any rectangle in rects [C, n, 4]."""
+    C = rects.shape[0]
+    for c in range(C):
+        for i in range(rects.shape[1]):
+            x0 = rects[c, i, 0]
+            x1 = rects[c, i, 1]
+            if x1 < x0:
+                continue
+            for ty in range(rects[c, i, 2] // TILE, rects[c, i, 3] // TILE + 1):
+                for tx in range(x0 // TILE, x1 // TILE + 1):
+                    dirty[c, ty * tiles_x + tx] = True
+
+
+@nb.njit(cache=True, inline="always")
+def _unit_quat_to_rot(q, R):
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@nb.njit(cache=True, inline="always")
+def _unit(q):
+    """Normalise q [4] in place with w >= 0; False for a zero or non-finite quaternion."""
+    m = 0.0
+    for i in range(4):
+        if not math.isfinite(q[i]):
+            return False
+        m = max(m, abs(q[i]))
+    if not (m > 0.0):
+        return False
+    n = 0.0
+    for i in range(4):
+        q[i] /= m  # scale first: no overflow for huge finite quaternions
+        n += q[i] * q[i]
+    n = math.sqrt(n)
+    if m * n <= 1e-12:  # as dsg_gym.poses.quat_normalize: a near-zero quaternion is an error
+        return False
+    sgn = -1.0 if q[0] < 0.0 else 1.0
+    for i in range(4):
+        q[i] = sgn * q[i] / n
+    return True
+
+
+@nb.njit(cache=True)
+def rigid_from_pose7(p7, q_out, R_out, t_out):
+    """Poses [K,7] (x y z qw qx qy qz) -> unit quaternions (w >= 0) [K,4], rotations [K,3,3],
+    translations [K,3]; returns the index of the first pose with a zero/non-finite quaternion or a
+    non-finite position, else -1."""
+    for k in range(p7.shape[0]):
+        for i in range(3):
+            t_out[k, i] = p7[k, i]
+            if not math.isfinite(p7[k, i]):
+                return k
+        for i in range(4):
+            q_out[k, i] = p7[k, 3 + i]
+        if not _unit(q_out[k]):
+            return k
+        _unit_quat_to_rot(q_out[k], R_out[k])
+    return -1
+
+
+@nb.njit(cache=True)
+def rigid_from_matrices(M, q_out, R_out, t_out):
+    """Rigid transforms [K,4,4] -> (as ``rigid_from_pose7``); the quaternion comes from the rotation block
+    by Shepperd's method and the rotation is rebuilt from it (consistent and orthonormal even if the
+    block drifted). Returns the index of the first non-finite matrix or rotation with det <= 0, else -1."""
+    for k in range(M.shape[0]):
+        r = M[k]
+        for i in range(4):
+            for j in range(4):
+                if not math.isfinite(r[i, j]):
+                    return k
+        det = (r[0, 0] * (r[1, 1] * r[2, 2] - r[1, 2] * r[2, 1]) - r[0, 1] * (r[1, 0] * r[2, 2] - r[1, 2] * r[2, 0])
+               + r[0, 2] * (r[1, 0] * r[2, 1] - r[1, 1] * r[2, 0]))
+        if not (det > 0.0):
+            return k
+        tr = r[0, 0] + r[1, 1] + r[2, 2]
+        q = q_out[k]
+        if tr >= r[0, 0] and tr >= r[1, 1] and tr >= r[2, 2]:
+            q[0], q[1], q[2], q[3] = 1.0 + tr, r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
+        elif r[0, 0] >= r[1, 1] and r[0, 0] >= r[2, 2]:
+            q[0], q[1], q[2], q[3] = r[2, 1] - r[1, 2], 1.0 + r[0, 0] - r[1, 1] - r[2, 2], r[0, 1] + r[1, 0], r[0, 2] + r[2, 0]
+        elif r[1, 1] >= r[2, 2]:
+            q[0], q[1], q[2], q[3] = r[0, 2] - r[2, 0], r[0, 1] + r[1, 0], 1.0 + r[1, 1] - r[0, 0] - r[2, 2], r[1, 2] + r[2, 1]
+        else:
+            q[0], q[1], q[2], q[3] = r[1, 0] - r[0, 1], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], 1.0 + r[2, 2] - r[0, 0] - r[1, 1]
+        if not _unit(q):
+            return k
+        _unit_quat_to_rot(q, R_out[k])
+        for i in range(3):
+            t_out[k, i] = r[i, 3]
+    return -1
+
+
+@nb.njit(cache=True)
+def rigid_transform(means, quats, R, t, q, out_means, out_quats):
+    """out = pose applied to Gaussians: means R m + t (float64 math), quats q * quat (Hamilton).
+
+    means [n,3], quats [n,4] wxyz (float32); R [3,3], t [3], q [4] float64.
+    """
+    for i in range(means.shape[0]):
+        mx = np.float64(means[i, 0])
+        my = np.float64(means[i, 1])
+        mz = np.float64(means[i, 2])
+        out_means[i, 0] = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + t[0]
+        out_means[i, 1] = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + t[1]
+        out_means[i, 2] = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + t[2]
+        bw = np.float64(quats[i, 0])
+        bx = np.float64(quats[i, 1])
+        by = np.float64(quats[i, 2])
+        bz = np.float64(quats[i, 3])
+        out_quats[i, 0] = q[0] * bw - q[1] * bx - q[2] * by - q[3] * bz
+        out_quats[i, 1] = q[0] * bx + q[1] * bw + q[2] * bz - q[3] * by
+        out_quats[i, 2] = q[0] * by - q[1] * bz + q[2] * bw + q[3] * bx
+        out_quats[i, 3] = q[0] * bz + q[1] * by - q[2] * bx + q[3] * bw
+
+
+@nb.njit(cache=True)
+def sh_to_rgb(means_w, R, campos, sh, degree, out):
+    """RGB = max(0, SH(dir) + 0.5) for Gaussians of one object seen from ``campos``.
+
+    means_w [n,3] world centres, R [3,3] the object's rotation (the view direction is taken
+    into the object frame, where the coefficients live), sh [n,K,3], out [n,3]. The basis is
+    :mod:`.numba_sh`'s (the training kernels'), evaluated in float64.
+    """
+    K = (degree + 1) * (degree + 1)
+    b = np.empty(16)
+    for i in range(means_w.shape[0]):
+        wx = np.float64(means_w[i, 0]) - campos[0]
+        wy = np.float64(means_w[i, 1]) - campos[1]
+        wz = np.float64(means_w[i, 2]) - campos[2]
+        x = R[0, 0] * wx + R[1, 0] * wy + R[2, 0] * wz
+        y = R[0, 1] * wx + R[1, 1] * wy + R[2, 1] * wz
+        z = R[0, 2] * wx + R[1, 2] * wy + R[2, 2] * wz
+        n = math.sqrt(x * x + y * y + z * z)
+        s = 1.0 / n if n > 0 else 1.0
+        sh_basis(degree, x * s, y * s, z * s, b)
+        for ch in range(3):
+            v = 0.0
+            for k in range(K):
+                v += b[k] * np.float64(sh[i, k, ch])
+            out[i, ch] = max(v + 0.5, 0.0)
+
+
+@nb.njit(cache=True)
+def finish_tiles(tiles, tiles_x, tiles_y, width, height, out, T, bg_rgb, o_rgb, o_mask, n_mask, o_depth,
+                 rgb, mask, depth, alpha):
+    """Turn the accumulators of the listed tiles into outputs (in place).
+
+    rgb uint8 = round(255 clip(C + T bg)); mask = argmax of the id weights with T added to the
+    background's; depth = accumulated depth / alpha (0 where alpha <= 1e-6); alpha = 1 - T.
+    """
+    nt = tiles_x * tiles_y
+    for m in range(tiles.shape[0]):
+        ct = tiles[m]
+        c = ct // nt
+        t = ct - c * nt
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        for y in range(ty * TILE, min((ty + 1) * TILE, height)):
+            for x in range(tx * TILE, min((tx + 1) * TILE, width)):
+                tr = T[c, y, x]
+                a = np.float32(1.0) - tr
+                alpha[c, y, x] = a
+                if o_rgb >= 0:
+                    for ch in range(3):
+                        v = out[c, y, x, o_rgb + ch] + tr * bg_rgb[ch]
+                        v = min(max(v, np.float32(0.0)), np.float32(1.0))
+                        rgb[c, y, x, ch] = np.uint8(v * np.float32(255.0) + np.float32(0.5))
+                if o_mask >= 0:
+                    best = out[c, y, x, o_mask] + tr
+                    arg = 0
+                    for k in range(1, n_mask):
+                        w = out[c, y, x, o_mask + k]
+                        if w > best:
+                            best = w
+                            arg = k
+                    mask[c, y, x] = arg
+                if o_depth >= 0:
+                    depth[c, y, x] = out[c, y, x, o_depth] / a if a > 1e-6 else np.float32(0.0)
+
+
+@nb.njit(cache=True)
+def bin_tiles(keys, rects, dirty, tiles_x, tiles_y, slices, active):
+    """Per-tile depth-ordered Gaussian lists of the tiles flagged in ``dirty`` [C, T] only.
+
+    keys [C,N] unsigned ints that order like the depths, rects [C,N,4] (x1 < x0: culled); the N
+    Gaussians are K objects' consecutive ranges ``slices`` [K+1], and only the objects flagged in
+    ``active`` [K] are looked at (the others must reach no flagged tile). Returns ``tile_offsets
+    [C*T+1]`` (CSR; tiles not flagged get empty lists) and ``tile_gauss`` int32. A flagged tile's list
+    equals the one ``numba_bins.bin_gaussians`` builds from ``depth_order`` (depth order, ties in
+    index order): the same stable sort, applied to the Gaussians that reach a flagged tile only (a
+    stable sort of a subsequence is the subsequence of the stable sort).
+    """
+    C = rects.shape[0]
+    N = rects.shape[1]
+    T = tiles_x * tiles_y
+    counts = np.zeros(C * T, dtype=np.int64)
+    sel = np.empty((C, N), dtype=np.int64)
+    nsel = np.zeros(C, dtype=np.int64)
+    for c in range(C):
+        n = 0
+        dc = dirty[c]
+        for k in range(active.shape[0]):
+            if not active[k]:
+                continue
+            for i in range(slices[k], slices[k + 1]):
+                x0 = rects[c, i, 0]
+                x1 = rects[c, i, 1]
+                if x1 < x0:
+                    continue
+                hit = False
+                for ty in range(rects[c, i, 2] >> _TILE_BITS, (rects[c, i, 3] >> _TILE_BITS) + 1):
+                    for tx in range(x0 >> _TILE_BITS, (x1 >> _TILE_BITS) + 1):
+                        t = ty * tiles_x + tx
+                        if dc[t]:
+                            counts[c * T + t] += 1
+                            hit = True
+                if hit:
+                    sel[c, n] = i
+                    n += 1
+        nsel[c] = n
+    offsets = np.zeros(C * T + 1, dtype=np.int64)
+    for t in range(C * T):
+        offsets[t + 1] = offsets[t] + counts[t]
+    gauss = np.empty(offsets[C * T], dtype=np.int32)
+    fill = offsets[:-1].copy()
+    for c in range(C):
+        n = nsel[c]
+        dc = dirty[c]
+        sub_keys = np.empty((1, n), dtype=keys.dtype)
+        sub_rects = np.empty((1, n, 4), dtype=rects.dtype)
+        for k in range(n):
+            sub_keys[0, k] = keys[c, sel[c, k]]
+            for j in range(4):
+                sub_rects[0, k, j] = rects[c, sel[c, k], j]
+        order, _ = depth_order(sub_keys, sub_rects)
+        for k in range(n):
+            i = sel[c, order[0, k]]
+            for ty in range(rects[c, i, 2] >> _TILE_BITS, (rects[c, i, 3] >> _TILE_BITS) + 1):
+                for tx in range(rects[c, i, 0] >> _TILE_BITS, (rects[c, i, 1] >> _TILE_BITS) + 1):
+                    t = ty * tiles_x + tx
+                    if dc[t]:
+                        gauss[fill[c * T + t]] = i
+                        fill[c * T + t] += 1
+    return offsets, gauss
+
+
+@nb.njit(cache=True)
+def fill_colors(rgb, labels, depths, o_rgb, o_mask, o_depth, out):
+    """Per-Gaussian channel values of one camera: out [n, D] = 0, then RGB (rgb [n,3]) at ``o_rgb``, a one-hot
+    1 at ``o_mask + labels[i]`` and the depth at ``o_depth`` (each only where its offset is >= 0)."""
+    for i in range(out.shape[0]):
+        for d in range(out.shape[1]):
+            out[i, d] = 0.0
+        if o_rgb >= 0:
+            for ch in range(3):
+                out[i, o_rgb + ch] = rgb[i, ch]
+        if o_mask >= 0:
+            out[i, o_mask + labels[i]] = 1.0
+        if o_depth >= 0:
+            out[i, o_depth] = depths[i]

@@ -1,0 +1,51 @@
+"""benchmarks._results: the default output path of every benchmark, by benchmark, date and commit."""
+
+from __future__ import annotations
+
+import datetime
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from benchmarks._results import RESULTS, default_out, short_commit
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_default_out_names_benchmark_date_and_commit(tmp_path):
+    day = datetime.date(2026, 11, 24)
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
+    commit = head.stdout.strip() if head.returncode == 0 else "nocommit"
+    assert short_commit() == commit
+    assert default_out("env_step", date=day) == RESULTS / "env_step" / f"2026-11-24-{commit}.json"
+    assert RESULTS == REPO / "benchmarks" / "results"
+    assert default_out("pareto", "", date=day, root=tmp_path) == tmp_path / "pareto" / f"2026-11-24-{commit}"
+    assert not (tmp_path / "pareto").exists()  # nothing is created
+    today = default_out("collect")
+    assert re.fullmatch(r"\d{4}-\d{2}-\d{2}-[0-9a-z]+\.json", today.name) and today.parent == RESULTS / "collect"
+    assert datetime.date.fromisoformat(today.name[:10]) == datetime.date.today()
+    for bad in ("", "a/b", ".hidden"):
+        with pytest.raises(ValueError, match="plain name"):
+            default_out(bad)
+
+
+def test_outside_git_the_commit_is_nocommit(tmp_path, monkeypatch):
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path.parent))  # git must not find a repo above
+    monkeypatch.delenv("GIT_DIR", raising=False)
+    assert short_commit(tmp_path) == "nocommit"
+    p = default_out("render", date=datetime.date(2026, 1, 2), root=tmp_path, cwd=tmp_path)
+    assert p == tmp_path / "render" / "2026-01-02-nocommit.json"
+    monkeypatch.setenv("PATH", str(tmp_path))  # no git at all
+    assert short_commit() == "nocommit"
+
+
+def test_every_benchmark_with_an_out_option_defaults_to_it():
+    """Each script taking ``--out`` fills it from :func:`default_out` when it is not given."""
+    scripts = [p for p in sorted((REPO / "benchmarks").glob("*.py")) if 'add_argument("--out"' in p.read_text()]
+    assert {"collect", "env_step", "pareto", "render", "stress", "train_step"} <= {p.stem for p in scripts}
+    for path in scripts:
+        text = path.read_text()
+        assert f'default_out("{path.stem}"' in text, path.name
+        assert not re.search(r'add_argument\("--out"[^)]*required=True', text), path.name

@@ -1,33 +1,56 @@
 # Two commands do all the set-up on a fresh machine:
-#   make demo   -> renders with the bundled default world and prints where the PNG went
-#   make test   -> runs the test suite
-# Both create .venv when needed and install torch==2.13.0 (CPU wheel) before the package.
+#   make demo   -> installs what the demo needs, renders with the bundled default world, prints where the PNG went
+#   make test   -> installs the test extras too, runs ruff (lint and format check) and the test suite
+# Both create .venv when needed and install torch==2.13.0 (CPU wheel) before the package, so pip never
+# resolves torch itself (it would pick a CUDA build). Each install step has its own stamp in .venv:
+# `make test` after `make demo` adds the extras; a changed pyproject.toml redoes the steps.
+#   make smoke  -> builds the wheel and runs it from a fresh venv outside the checkout (.ci/wheel_smoke.sh)
 VENV ?= .venv
 PY := $(VENV)/bin/python
-STAMP := $(VENV)/.dsg-installed
+PIP := $(PY) -m pip install -q
+BASE := $(VENV)/.dsg-base
+TEST := $(VENV)/.dsg-test
+BENCH := $(VENV)/.dsg-bench
+# the extras the tests import: test (pytest, hypothesis, ruff), rl (tests/test_env.py), ray
+# (tests/test_collect_ray.py), capture (tests/test_photo_capture.py), bench (tests/test_pareto.py's plots);
+# tests of an absent extra skip with a reason
+TEST_EXTRAS := test,rl,ray,capture,bench
 export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 
-.PHONY: demo test bench install clean
+.PHONY: demo test bench smoke install clean
 
-install: $(STAMP)
+install: $(BASE)
 
-$(STAMP): pyproject.toml
+# the venv, torch, and the package (editable) with its runtime dependencies only
+$(BASE): pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[test,rl,ray]'
-	touch $(STAMP)
+	$(PIP) --upgrade pip
+	$(PIP) torch==2.13.0
+	$(PIP) -e .
+	touch $@
 
-demo: $(STAMP)
+$(TEST): $(BASE)
+	$(PIP) -e '.[$(TEST_EXTRAS)]'
+	touch $@
+
+$(BENCH): $(BASE)
+	$(PIP) -e '.[bench]'
+	touch $@
+
+demo: $(BASE)
 	$(PY) -m dsg_gym.cli.demo
 
-test: $(STAMP)
+test: $(TEST)
 	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 	$(PY) -m pytest -q tests
 
-bench: $(STAMP)
+bench: $(BENCH)
 	$(PY) -m benchmarks.render --out render.json
+
+smoke:
+	bash .ci/wheel_smoke.sh
 
 clean:
 	rm -rf $(VENV) build *.egg-info

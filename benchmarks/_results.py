@@ -21,16 +21,28 @@ RESULTS = REPO / "benchmarks" / "results"
 def short_commit(cwd: Path = REPO) -> str:
     """``git rev-parse --short HEAD`` in ``cwd``, or ``"nocommit"`` when that fails (not a checkout, no git)."""
     try:
-        r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=cwd, capture_output=True, text=True,
-                           timeout=10, check=False)
+        r = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=False,
+        )
     except (OSError, subprocess.SubprocessError):
         return "nocommit"
     head = r.stdout.strip()
     return head if r.returncode == 0 and head else "nocommit"
 
 
-def default_out(benchmark: str, suffix: str = ".json", *, date: datetime.date | None = None,
-                root: Path = RESULTS, cwd: Path = REPO) -> Path:
+def default_out(
+    benchmark: str,
+    suffix: str = ".json",
+    *,
+    date: datetime.date | None = None,
+    root: Path = RESULTS,
+    cwd: Path = REPO,
+) -> Path:
     """``<root>/<benchmark>/<YYYY-MM-DD>-<short commit><suffix>``; ``suffix=""`` names a folder (for
     benchmarks that write several files). Nothing is created."""
     if not benchmark or "/" in benchmark or benchmark.startswith("."):

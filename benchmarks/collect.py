@@ -67,8 +67,9 @@ def end_to_end(num_envs: int, episodes: int, size: int, steps: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", help="JSON file to write (default: "
-                                  "benchmarks/results/collect/<date>-<commit>.json)")
+    ap.add_argument(
+        "--out", help="JSON file to write (default: benchmarks/results/collect/<date>-<commit>.json)"
+    )
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--episodes", type=int, default=12, help="random-policy episodes per configuration")
     ap.add_argument("--steps", type=int, default=100, help="time limit of the random episodes")

@@ -43,8 +43,9 @@ class EnvRun:
     """A single env stepped by random one-object moves; ``run(steps)`` returns steps/s of one repeat."""
 
     def __init__(self, incremental: bool, size: int, seed: int = 0, world: str | None = None):
-        self.env = gym.make("DSGWorld-v0", world=world, width=size, height=size, obs=("rgb", "mask"),
-                            incremental=incremental)
+        self.env = gym.make(
+            "DSGWorld-v0", world=world, width=size, height=size, obs=("rgb", "mask"), incremental=incremental
+        )
         self.k = self.env.unwrapped.K
         self.env.reset(seed=seed)
         self.rng = np.random.default_rng(seed)
@@ -75,8 +76,9 @@ class EnvRun:
         }
 
 
-def env_rate(incremental: bool, size: int, steps: int, repeats: int, seed: int = 0,
-             world: str | None = None) -> dict:
+def env_rate(
+    incremental: bool, size: int, steps: int, repeats: int, seed: int = 0, world: str | None = None
+) -> dict:
     r = EnvRun(incremental, size, seed, world)
     for _ in range(repeats):
         r.run(steps)
@@ -90,10 +92,10 @@ class MujocoRun:
     def __init__(self, size: int, seed: int = 0):
         import mujoco
 
-        from train_world.synth.geom_world import capture_cameras
         from train_world.synth import resolve_scene
         from train_world.synth.build import build_scene
         from train_world.synth.generate import rng_for
+        from train_world.synth.geom_world import capture_cameras
         from train_world.synth.render import SceneRenderer
         from train_world.synth.states import sample_states
 
@@ -154,13 +156,18 @@ def async_rate(size: int, steps: int, repeats: int, workers: int = 2, world: str
             envs.step(a)
         rates.append(workers * steps / (time.perf_counter() - t0))
     envs.close()
-    return {"workers": workers, "env_steps_per_s": float(np.median(rates)), "runs": [round(r, 1) for r in rates]}
+    return {
+        "workers": workers,
+        "env_steps_per_s": float(np.median(rates)),
+        "runs": [round(r, 1) for r in rates],
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", help="JSON file to write (default: "
-                                  "benchmarks/results/env_step/<date>-<commit>.json)")
+    ap.add_argument(
+        "--out", help="JSON file to write (default: benchmarks/results/env_step/<date>-<commit>.json)"
+    )
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--steps", type=int, default=600, help="steps (frames) per repeat")
     ap.add_argument("--repeats", type=int, default=5)
@@ -196,7 +203,11 @@ def main(argv: list[str] | None = None) -> int:
             "met_steps": inc["steps_per_s"] >= TARGET_STEPS,
             "met_ratio": None if ratio is None else ratio >= TARGET_RATIO,
         },
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+        },
         # the runtime's kernels run on numba's own choice of layer (dsg_gym.splat.threads)
         "numba": {"threading_layer": numba.threading_layer(), "threads": numba.get_num_threads()},
     }

@@ -43,8 +43,15 @@ def _matrices(poses) -> np.ndarray:
     return pose7_to_matrix(p) if p.shape[-1] == 7 else p
 
 
-def lighting_ceiling(scene: str = "two_blocks", lighting: str = "soft", reference: str = "state1",
-                     size: int = 128, test_states: int = 3, seed: int = 0, band: bool = False) -> dict:
+def lighting_ceiling(
+    scene: str = "two_blocks",
+    lighting: str = "soft",
+    reference: str = "state1",
+    size: int = 128,
+    test_states: int = 3,
+    seed: int = 0,
+    band: bool = False,
+) -> dict:
     """PSNR (dB) of ideal rigid-appearance renders against the ground truth of ``scene``'s test states.
 
     ``band``: use 12 cameras of the training orbit instead of the scene's test orbit. Returns a dict with
@@ -93,18 +100,35 @@ def lighting_ceiling(scene: str = "two_blocks", lighting: str = "soft", referenc
                 n_obj += int(obj.sum()) * 3
                 n_img += sq.size
     m.light_pos[:], m.light_dir[:] = pos0, dir0
-    return {"scene": scene, "lighting": lighting, "reference": reference, "size": size,
-            "cameras": "training band" if band else "test orbit", "test_states": cfg.test_states,
-            "views": len(cams), "object_psnr": _psnr(err_obj, n_obj), "image_psnr": _psnr(err_img, n_img)}
+    return {
+        "scene": scene,
+        "lighting": lighting,
+        "reference": reference,
+        "size": size,
+        "cameras": "training band" if band else "test orbit",
+        "test_states": cfg.test_states,
+        "views": len(cams),
+        "object_psnr": _psnr(err_obj, n_obj),
+        "image_psnr": _psnr(err_img, n_img),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.lighting_ceiling", description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, help="JSON file to write (default: "
-                                            "benchmarks/results/lighting_ceiling/<date>-<commit>.json)")
-    p.add_argument("--scenes", nargs="+", default=["two_blocks"], help="synthetic scene names (default two_blocks)")
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.lighting_ceiling", description=__doc__.split("\n")[0]
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="JSON file to write (default: benchmarks/results/lighting_ceiling/<date>-<commit>.json)",
+    )
+    p.add_argument(
+        "--scenes", nargs="+", default=["two_blocks"], help="synthetic scene names (default two_blocks)"
+    )
     p.add_argument("--lighting", nargs="+", default=["soft", "spot"], choices=["soft", "spot", "headlight"])
-    p.add_argument("--reference", default="state1", help="state whose shading the objects keep (default state1)")
+    p.add_argument(
+        "--reference", default="state1", help="state whose shading the objects keep (default state1)"
+    )
     p.add_argument("--size", type=int, default=128)
     args = p.parse_args(argv)
     args.out = args.out or default_out("lighting_ceiling")
@@ -114,8 +138,11 @@ def main(argv: list[str] | None = None) -> int:
             for band in (False, True):
                 r = lighting_ceiling(scene, lighting, args.reference, args.size, band=band)
                 rows.append(r)
-                print(f"{scene:18s} {lighting:5s} {r['cameras']:13s} objects {r['object_psnr']:6.2f} dB  "
-                      f"image {r['image_psnr']:6.2f} dB", file=sys.stderr)
+                print(
+                    f"{scene:18s} {lighting:5s} {r['cameras']:13s} objects {r['object_psnr']:6.2f} dB  "
+                    f"image {r['image_psnr']:6.2f} dB",
+                    file=sys.stderr,
+                )
     from train_world.capture.format import atomic_write_json
 
     atomic_write_json(args.out, {"benchmark": "lighting_ceiling", "rows": rows})

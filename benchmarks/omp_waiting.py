@@ -51,12 +51,18 @@ def _collect(proc: subprocess.Popen, out: Path, mode: str, setting: str) -> dict
     if proc.returncode != 0:
         raise RuntimeError(f"benchmarks.train_step ({mode}, {setting}) failed:\n{err[-2000:]}")
     r = json.loads(out.read_text())
-    return {"mode": mode, "setting": setting, "joint_ms": r["joint"]["ms_median"],
-            "recon_ms": r["recon"]["ms_median"], "waiting": r["config"].get("openmp_waiting")}
+    return {
+        "mode": mode,
+        "setting": setting,
+        "joint_ms": r["joint"]["ms_median"],
+        "recon_ms": r["recon"]["ms_median"],
+        "waiting": r["config"].get("openmp_waiting"),
+    }
 
 
-def run(out: Path, bench_args: list[str], rounds: int, settings: tuple[str, ...], stagger: float = 5.0
-        ) -> dict[str, Any]:
+def run(
+    out: Path, bench_args: list[str], rounds: int, settings: tuple[str, ...], stagger: float = 5.0
+) -> dict[str, Any]:
     runs: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(rounds):
@@ -70,10 +76,17 @@ def run(out: Path, bench_args: list[str], rounds: int, settings: tuple[str, ...]
                     time.sleep(stagger)  # the first one chooses on an idle machine, the second beside it
                     procs.append(_launch(mode, fs[1], bench_args))
                     runs += [_collect(p, f, mode, "pair") for p, f in zip(procs, fs)]
-    summary = {s: {m: min(r["joint_ms"] for r in runs if r["mode"] == m and r["setting"] == s) for m in MODES}
-               for s in settings}
+    summary = {
+        s: {m: min(r["joint_ms"] for r in runs if r["mode"] == m and r["setting"] == s) for m in MODES}
+        for s in settings
+    }
     result = {
-        "config": {"train_step_args": bench_args, "rounds": rounds, "stagger_s": stagger, "cpus": os.cpu_count()},
+        "config": {
+            "train_step_args": bench_args,
+            "rounds": rounds,
+            "stagger_s": stagger,
+            "cpus": os.cpu_count(),
+        },
         "runs": runs,
         "summary": summary,
         "auto_over_passive": {s: round(v["auto"] / v["passive"], 3) for s, v in summary.items()},
@@ -86,18 +99,30 @@ def run(out: Path, bench_args: list[str], rounds: int, settings: tuple[str, ...]
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.omp_waiting", description=__doc__.split("\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, help="JSON file to write (default: "
-                                            "benchmarks/results/omp_waiting/<date>-<commit>.json)")
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.omp_waiting",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="JSON file to write (default: benchmarks/results/omp_waiting/<date>-<commit>.json)",
+    )
     p.add_argument("--capture", type=Path, help="two-state capture (benchmarks.train_step --capture)")
-    p.add_argument("--checkpoint", type=Path, help="its joint-start checkpoint (benchmarks.train_step --checkpoint)")
+    p.add_argument(
+        "--checkpoint", type=Path, help="its joint-start checkpoint (benchmarks.train_step --checkpoint)"
+    )
     p.add_argument("--steps", type=int, default=60, help="timed joint steps per process (default 60)")
     p.add_argument("--rounds", type=int, default=2, help="rounds of every mode and setting (default 2)")
     p.add_argument("--settings", default="alone,pair", help="comma list of alone, pair (default both)")
-    p.add_argument("--stagger", type=float, default=5.0,
-                   help="seconds between a pair's starts (default 5: the first chooses alone, yet the timed "
-                        "steps overlap)")
+    p.add_argument(
+        "--stagger",
+        type=float,
+        default=5.0,
+        help="seconds between a pair's starts (default 5: the first chooses alone, yet the timed "
+        "steps overlap)",
+    )
     p.add_argument("--quick", action="store_true", help="the quick preset on a generated 24x24 scene")
     args = p.parse_args(argv)
     args.out = args.out or default_out("omp_waiting")
@@ -111,7 +136,14 @@ def main(argv: list[str] | None = None) -> int:
     else:
         if args.capture is None or args.checkpoint is None:
             p.error("give --capture and --checkpoint (a joint-start checkpoint), or --quick")
-        bench = ["--capture", str(args.capture), "--checkpoint", str(args.checkpoint), "--steps", str(args.steps)]
+        bench = [
+            "--capture",
+            str(args.capture),
+            "--checkpoint",
+            str(args.checkpoint),
+            "--steps",
+            str(args.steps),
+        ]
     r = run(args.out, bench, args.rounds, settings, args.stagger)
     print(json.dumps({"summary": r["summary"], "auto_over_passive": r["auto_over_passive"]}))
     return 0

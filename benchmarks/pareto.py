@@ -152,7 +152,7 @@ class Sweep:
             else:
                 timer.add(p.name, self.variant(p), p)
         t0 = time.perf_counter()
-        for r in range(self.args.rounds):
+        for _ in range(self.args.rounds):
             timer.round()
         _log(f"{self.label}: {len(timer.envs)} envs x {self.args.rounds} rounds x {self.args.steps} steps in "
              f"{time.perf_counter() - t0:.0f} s")

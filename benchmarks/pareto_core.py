@@ -136,8 +136,11 @@ def float16_world(world: WorldModel, all_fields: bool = False) -> WorldModel:
     """``world`` with its SH colours and opacities (``all_fields``: also means, quats and scales) rounded to
     float16 and back: the error float16 storage would cost (the renderer itself computes in float32)."""
     fields = ("sh", "opacities") + (("means", "quats", "scales") if all_fields else ())
-    return dataclasses.replace(world, background=_round_set(world.background, fields),
-                               objects=tuple(_round_set(o, fields) for o in world.objects))
+    return dataclasses.replace(
+        world,
+        background=_round_set(world.background, fields),
+        objects=tuple(_round_set(o, fields) for o in world.objects),
+    )
 
 
 def keep_top(scores: np.ndarray, fraction: float, protected: np.ndarray | None = None) -> np.ndarray:
@@ -155,8 +158,9 @@ def keep_top(scores: np.ndarray, fraction: float, protected: np.ndarray | None =
     return keep
 
 
-def importance_scores(world: WorldModel, object_views: int = 32, rings: int = 2, per_ring: int = 12,
-                      size: int | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+def importance_scores(
+    world: WorldModel, object_views: int = 32, rings: int = 2, per_ring: int = 12, size: int | None = None
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """Removal error per Gaussian (mean over views, :func:`train_world.compact.importance.gaussian_importance`): the
     background alone from its capture cameras plus an orbit (:func:`~train_world.compact.importance.scene_cameras`),
     each object alone from ``object_views`` cameras on a sphere, as ``dsg-compact`` scores them."""
@@ -171,13 +175,16 @@ def importance_scores(world: WorldModel, object_views: int = 32, rings: int = 2,
     for o in world.objects:
         c = 0.5 * (o.means.min(0) + o.means.max(0)).astype(np.float64)
         vm = sphere_cameras(c, sc.radius, object_views, up=sc.up)
-        imp = gaussian_importance(o, vm, sc.Ks[np.zeros(len(vm), np.int64)], sc.width, sc.height,
-                                  background=bgc)
+        imp = gaussian_importance(
+            o, vm, sc.Ks[np.zeros(len(vm), np.int64)], sc.width, sc.height, background=bgc
+        )
         objs.append(imp.error_sum / max(imp.num_cameras, 1))
     return bg, objs
 
 
-def pruned_world(world: WorldModel, scores: tuple[np.ndarray, list[np.ndarray]], fraction: float) -> WorldModel:
+def pruned_world(
+    world: WorldModel, scores: tuple[np.ndarray, list[np.ndarray]], fraction: float
+) -> WorldModel:
     """``world`` keeping the ``fraction`` of each part's Gaussians with the largest removal error, no refit;
     object collision-hull vertices are always kept (the physics proxy builds the same hulls)."""
     from train_world.compact.compaction import hull_vertices
@@ -217,7 +224,9 @@ class TestStates:
     height: int
 
 
-def load_test_states(capture: str | Path, object_ids: tuple[int, ...], max_views: int | None = None) -> TestStates:
+def load_test_states(
+    capture: str | Path, object_ids: tuple[int, ...], max_views: int | None = None
+) -> TestStates:
     """The ``test`` states of a ``dsg-synth`` capture (all of them; ``max_views``: the first views only)."""
     from train_world.capture import load_capture
     from train_world.single_state.data import class_map
@@ -234,10 +243,16 @@ def load_test_states(capture: str | Path, object_ids: tuple[int, ...], max_views
     imgs = {s: cap.states[s].images[sl].numpy() for s in names}
     cls = {s: lut[cap.states[s].masks[sl].numpy()].astype(np.uint8) for s in names}
     v0 = cap.states[names[0]]
-    return TestStates(Path(capture).name, imgs, cls,
-                      {s: np.asarray(cap.poses[s], np.float64) for s in names},
-                      v0.viewmats[sl].numpy().astype(np.float64), v0.Ks[sl].numpy().astype(np.float64),
-                      v0.width, v0.height)
+    return TestStates(
+        Path(capture).name,
+        imgs,
+        cls,
+        {s: np.asarray(cap.poses[s], np.float64) for s in names},
+        v0.viewmats[sl].numpy().astype(np.float64),
+        v0.Ks[sl].numpy().astype(np.float64),
+        v0.width,
+        v0.height,
+    )
 
 
 def area_downsample(img: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -248,8 +263,17 @@ def area_downsample(img: np.ndarray, width: int, height: int) -> np.ndarray:
     if img.shape[:2] == (height, width):
         return np.asarray(img, np.float32)
     chans = img[..., None] if img.ndim == 2 else img
-    out = np.stack([np.asarray(Image.fromarray(np.ascontiguousarray(chans[..., c], np.float32), mode="F")
-                               .resize((width, height), Image.BOX)) for c in range(chans.shape[-1])], -1)
+    out = np.stack(
+        [
+            np.asarray(
+                Image.fromarray(np.ascontiguousarray(chans[..., c], np.float32), mode="F").resize(
+                    (width, height), Image.BOX
+                )
+            )
+            for c in range(chans.shape[-1])
+        ],
+        -1,
+    )
     return out[..., 0] if img.ndim == 2 else out
 
 
@@ -273,8 +297,17 @@ def render_error(world: WorldModel, test: TestStates, point: Point) -> dict:
     Ks[:, 0] *= s / test.width
     Ks[:, 1] *= s / test.height
     bgc = tuple(float(c) for c in world.metadata.get("background", (0.0, 0.0, 0.0)))
-    r = SceneRenderer(world.background, list(world.objects), test.viewmats, Ks, s, s, background_color=bgc,
-                      **world.splat_options, **point.render_settings.kwargs())
+    r = SceneRenderer(
+        world.background,
+        list(world.objects),
+        test.viewmats,
+        Ks,
+        s,
+        s,
+        background_color=bgc,
+        **world.splat_options,
+        **point.render_settings.kwargs(),
+    )
     k = world.num_objects
     psnrs, ssims, ious = [], [], []
     for state in sorted(test.poses):
@@ -290,9 +323,13 @@ def render_error(world: WorldModel, test: TestStates, point: Point) -> dict:
         vals = [v for v in mask_iou(out.mask, np.stack(gtc), range(1, k + 1)).values() if v is not None]
         if vals:
             ious.append(float(np.mean(vals)))
-    return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)),
-            "mask_iou": float(np.mean(ious)) if ious else None, "views": len(psnrs),
-            "gaussians": int(world.num_gaussians)}
+    return {
+        "psnr": float(np.mean(psnrs)),
+        "ssim": float(np.mean(ssims)),
+        "mask_iou": float(np.mean(ious)) if ious else None,
+        "views": len(psnrs),
+        "gaussians": int(world.num_gaussians),
+    }
 
 
 # -------------------------------------------------------------------------------------------- step time
@@ -319,9 +356,16 @@ class StepTimer:
         from dsg_gym.envs.dsg_world import DSGWorldEnv
 
         bgc = tuple(float(c) for c in world.metadata.get("background", (0.0, 0.0, 0.0)))
-        env = DSGWorldEnv(world=world, width=point.size, height=point.size, obs=("rgb", "mask"),
-                          incremental=True, collision="reject", background_color=bgc,
-                          render_settings=point.render_settings)
+        env = DSGWorldEnv(
+            world=world,
+            width=point.size,
+            height=point.size,
+            obs=("rgb", "mask"),
+            incremental=True,
+            collision="reject",
+            background_color=bgc,
+            render_settings=point.render_settings,
+        )
         env.reset(seed=self.seed)
         rng = np.random.default_rng(self.seed + 1)
         for a in _one_object_actions(rng, 20, env.K):  # warm-up: numba load, caches
@@ -348,10 +392,13 @@ class StepTimer:
 
     def result(self, name: str) -> dict:
         t = self.times[name]
-        return {"step_ms": 1e3 * float(np.median(t)), "steps_per_s": 1.0 / float(np.median(t)),
-                "rounds_ms": [round(1e3 * x, 3) for x in t],
-                "full_render_ms": 1e3 * float(np.median(self.full[name])),
-                "mean_tiles_recomposited": float(np.mean(self.tiles[name]))}
+        return {
+            "step_ms": 1e3 * float(np.median(t)),
+            "steps_per_s": 1.0 / float(np.median(t)),
+            "rounds_ms": [round(1e3 * x, 3) for x in t],
+            "full_render_ms": 1e3 * float(np.median(self.full[name])),
+            "mean_tiles_recomposited": float(np.mean(self.tiles[name])),
+        }
 
     def close(self) -> None:
         for env in self.envs.values():
@@ -372,9 +419,11 @@ def pareto_front(times: list[float], psnrs: list[float]) -> list[bool]:
     return out
 
 
-RECOMMEND_RULE = ("among the env-settable points (renderer settings only: full world, float32) at the env's "
-                  "default size: the fastest point on their Pareto front (step time, PSNR) whose mean PSNR is "
-                  "within {tol} dB of the most accurate of them")
+RECOMMEND_RULE = (
+    "among the env-settable points (renderer settings only: full world, float32) at the env's "
+    "default size: the fastest point on their Pareto front (step time, PSNR) whose mean PSNR is "
+    "within {tol} dB of the most accurate of them"
+)
 
 
 def recommend(rows: list[dict], tol: float = 0.1, size: int = DEFAULT_SIZE) -> dict | None:

@@ -43,15 +43,24 @@ def eval_times(first: float, cap: float) -> list[float]:
     return out + [float(cap)]
 
 
-def training_curve(capture: str | Path, preset: str, minutes: float, *, downscale: int = 2, seed: int = 0,
-                   first_eval: float = 15.0, chunk: int = 10, max_gaussians: int | None = None,
-                   iterations: int | None = None, log=None) -> dict:
+def training_curve(
+    capture: str | Path,
+    preset: str,
+    minutes: float,
+    *,
+    downscale: int = 2,
+    seed: int = 0,
+    first_eval: float = 15.0,
+    chunk: int = 10,
+    max_gaussians: int | None = None,
+    iterations: int | None = None,
+    log=None,
+) -> dict:
     """Train ``preset`` on ``capture`` for at most ``minutes`` of training time; returns the curve
     ``{"preset", "iterations", "points": [{"step", "train_seconds", "psnr", "ssim", "mask_iou", ...}]}``."""
     from dsg_gym.world_model import WorldModel
-    from train_world.single_state.presets import scaled_preset
     from train_world.dual_state.trainer import DualConfig, DualTrainer
-    from train_world.single_state.presets import TrainConfig
+    from train_world.single_state.presets import TrainConfig, scaled_preset
 
     from .pareto_core import Point, load_test_states, render_error
 
@@ -72,8 +81,11 @@ def training_curve(capture: str | Path, preset: str, minutes: float, *, downscal
         due = tr.step >= p.iterations or tr.elapsed >= cap_s or tr.elapsed >= marks[0]
         if due:
             t0 = time.perf_counter()
-            row = {"step": tr.step, "train_seconds": round(tr.elapsed, 2),
-                   "train_psnr": tr.history[-1]["psnr"] if tr.history else None}
+            row = {
+                "step": tr.step,
+                "train_seconds": round(tr.elapsed, 2),
+                "train_psnr": tr.history[-1]["psnr"] if tr.history else None,
+            }
             try:
                 world = WorldModel.from_world(tr.world()).without_features()
             except ValueError as e:  # e.g. early on, the classifier gives an object no Gaussians yet
@@ -83,7 +95,11 @@ def training_curve(capture: str | Path, preset: str, minutes: float, *, downscal
             eval_s += time.perf_counter() - t0
             points.append(row)
             if log:
-                got = "no world" if row["psnr"] is None else f"PSNR {row['psnr']:.2f} dB, {row['gaussians']} Gaussians"
+                got = (
+                    "no world"
+                    if row["psnr"] is None
+                    else f"PSNR {row['psnr']:.2f} dB, {row['gaussians']} Gaussians"
+                )
                 log(f"{preset}: step {tr.step} at {tr.elapsed:.0f} s: {got}")
             while marks and tr.elapsed >= marks[0]:
                 marks.pop(0)
@@ -106,9 +122,8 @@ def training_curve(capture: str | Path, preset: str, minutes: float, *, downscal
 def warm_up(capture: str | Path, downscale: int, seed: int = 0) -> float:
     """A throwaway 3-step run, so that numba's compilation (or cache loading) of the training kernels is not
     counted in the first preset's clock. Returns its seconds."""
-    from train_world.single_state.presets import scaled_preset
     from train_world.dual_state.trainer import DualConfig, DualTrainer
-    from train_world.single_state.presets import TrainConfig
+    from train_world.single_state.presets import TrainConfig, scaled_preset
 
     t0 = time.perf_counter()
     cfg = DualConfig(base=TrainConfig(preset=scaled_preset("quick", 6), seed=seed, downscale=downscale))
@@ -117,14 +132,24 @@ def warm_up(capture: str | Path, downscale: int, seed: int = 0) -> float:
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.pareto_training", description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog=__doc__.split("\n", 2)[2])
-    ap.add_argument("--capture", type=Path, required=True, help="a dsg-synth capture (state1, state2, test_*)")
-    ap.add_argument("--out", type=Path, help="JSON file to write (default: "
-                                             "benchmarks/results/pareto_training/<date>-<commit>.json)")
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmarks.pareto_training",
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("\n", 2)[2],
+    )
+    ap.add_argument(
+        "--capture", type=Path, required=True, help="a dsg-synth capture (state1, state2, test_*)"
+    )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        help="JSON file to write (default: benchmarks/results/pareto_training/<date>-<commit>.json)",
+    )
     ap.add_argument("--presets", default=",".join(PRESET_NAMES), help="comma-separated (default: all three)")
-    ap.add_argument("--train-minutes", type=float, default=5.0, help="training time cap per preset (default 5)")
+    ap.add_argument(
+        "--train-minutes", type=float, default=5.0, help="training time cap per preset (default 5)"
+    )
     ap.add_argument("--downscale", type=int, default=2, help="image downscale for training and evaluation")
     ap.add_argument("--first-eval", type=float, default=15.0, help="first evaluation after this many seconds")
     ap.add_argument("--chunk", type=int, default=10, help="steps between clock checks")
@@ -148,15 +173,32 @@ def main(argv: list[str] | None = None) -> int:
     warm = warm_up(args.capture, args.downscale, args.seed)
     curves = []
     for name in presets:
-        curves.append(training_curve(args.capture, name, args.train_minutes, downscale=args.downscale,
-                                     seed=args.seed, first_eval=args.first_eval, chunk=args.chunk,
-                                     max_gaussians=args.max_gaussians, iterations=args.iterations,
-                                     log=lambda m: print(m, file=sys.stderr, flush=True)))
-    result = {"benchmark": "pareto_training", "capture": str(args.capture), "downscale": args.downscale,
-              "train_minutes": args.train_minutes, "seed": args.seed, "curves": curves,
-              "wall_seconds": round(time.perf_counter() - t0, 1), "warm_up_seconds": round(warm, 1),
-              "note": "novel-state PSNR on every test state's views (MuJoCo ground truth, area-downsampled), "
-                      "rendered by the env's renderer with default settings; time = training steps only"}
+        curves.append(
+            training_curve(
+                args.capture,
+                name,
+                args.train_minutes,
+                downscale=args.downscale,
+                seed=args.seed,
+                first_eval=args.first_eval,
+                chunk=args.chunk,
+                max_gaussians=args.max_gaussians,
+                iterations=args.iterations,
+                log=lambda m: print(m, file=sys.stderr, flush=True),
+            )
+        )
+    result = {
+        "benchmark": "pareto_training",
+        "capture": str(args.capture),
+        "downscale": args.downscale,
+        "train_minutes": args.train_minutes,
+        "seed": args.seed,
+        "curves": curves,
+        "wall_seconds": round(time.perf_counter() - t0, 1),
+        "warm_up_seconds": round(warm, 1),
+        "note": "novel-state PSNR on every test state's views (MuJoCo ground truth, area-downsampled), "
+        "rendered by the env's renderer with default settings; time = training steps only",
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(args.out, result)
     return 0

@@ -39,8 +39,8 @@ def _peak_rss_mb() -> float:
 def _measure(n: int, size: int, backend: str, repeats: int) -> dict:
     import torch
 
-    from dsg_gym.splat import rasterize
     from benchmarks.splat_scenes import random_scene
+    from dsg_gym.splat import rasterize
 
     scene = random_scene(n, width=size, height=size, channels=CHANNELS, seed=0)
     g = torch.Generator().manual_seed(1)
@@ -52,8 +52,10 @@ def _measure(n: int, size: int, backend: str, repeats: int) -> dict:
             rasterize(**scene, backend=backend)
 
     def forward_backward():
-        leaves = {k: scene[k].clone().requires_grad_(True)
-                  for k in ("means", "quats", "scales", "opacities", "colors")}
+        leaves = {
+            k: scene[k].clone().requires_grad_(True)
+            for k in ("means", "quats", "scales", "opacities", "colors")
+        }
         out, alpha, _ = rasterize(**{**scene, **leaves}, backend=backend)
         ((out * w_out).sum() + (alpha * w_alpha).sum()).backward()
 
@@ -68,11 +70,19 @@ def _measure(n: int, size: int, backend: str, repeats: int) -> dict:
 
     fwd = timed(forward)
     fwd_bwd = timed(forward_backward)
-    return {"backend": backend, "n": n, "width": size, "height": size, "channels": CHANNELS,
-            "forward_ms": round(fwd, 3), "forward_backward_ms": round(fwd_bwd, 3),
-            "peak_rss_mb": round(_peak_rss_mb(), 1), "repeats": repeats,
-            "threads": {"torch": torch.get_num_threads(), "numba": _numba_threads()},
-            "threading_layer": _threading_layer()}
+    return {
+        "backend": backend,
+        "n": n,
+        "width": size,
+        "height": size,
+        "channels": CHANNELS,
+        "forward_ms": round(fwd, 3),
+        "forward_backward_ms": round(fwd_bwd, 3),
+        "peak_rss_mb": round(_peak_rss_mb(), 1),
+        "repeats": repeats,
+        "threads": {"torch": torch.get_num_threads(), "numba": _numba_threads()},
+        "threading_layer": _threading_layer(),
+    }
 
 
 def _threading_layer() -> str:
@@ -102,14 +112,20 @@ def _torch_repeats(n: int, size: int, quick: bool) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", help="JSON file to write (default: "
-                                  "benchmarks/results/render/<date>-<commit>.json)")
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--out", help="JSON file to write (default: benchmarks/results/render/<date>-<commit>.json)"
+    )
     ap.add_argument("--quick", action="store_true", help="fewer repeats, skip torch at the largest size")
     ap.add_argument("--repeats", type=int, default=None, help="numba repeats (default 20, quick 5)")
-    ap.add_argument("--threading-layer", default="omp", choices=["omp", "workqueue"],
-                    help="numba threading layer (omp: training's; workqueue: the runtime default)")
+    ap.add_argument(
+        "--threading-layer",
+        default="omp",
+        choices=["omp", "workqueue"],
+        help="numba threading layer (omp: training's; workqueue: the runtime default)",
+    )
     args = ap.parse_args(argv)
     args.out = args.out or str(default_out("render"))
     repeats = args.repeats or (5 if args.quick else 20)
@@ -118,21 +134,35 @@ def main(argv: list[str] | None = None) -> int:
         for n in COUNTS:
             with tempfile.TemporaryDirectory() as tmp:
                 out = os.path.join(tmp, "r.json")
-                cmd = [sys.executable, "-m", "benchmarks.render", "--child", str(n), str(size), str(repeats),
-                       str(_torch_repeats(n, size, args.quick)), out]
+                cmd = [
+                    sys.executable,
+                    "-m",
+                    "benchmarks.render",
+                    "--child",
+                    str(n),
+                    str(size),
+                    str(repeats),
+                    str(_torch_repeats(n, size, args.quick)),
+                    out,
+                ]
                 env = {**os.environ, "NUMBA_THREADING_LAYER": args.threading_layer}
                 subprocess.run(cmd, check=True, env=env)
                 recs = json.loads(Path(out).read_text())
             for r in recs:
-                print(f"{r['backend']:6s} n={n:7d} {size}x{size}  fwd {r['forward_ms']:9.2f} ms  "
-                      f"fwd+bwd {r['forward_backward_ms']:9.2f} ms  peak {r['peak_rss_mb']:7.1f} MB", flush=True)
+                print(
+                    f"{r['backend']:6s} n={n:7d} {size}x{size}  fwd {r['forward_ms']:9.2f} ms  "
+                    f"fwd+bwd {r['forward_backward_ms']:9.2f} ms  peak {r['peak_rss_mb']:7.1f} MB",
+                    flush=True,
+                )
             records.extend(recs)
     by = {(r["backend"], r["n"], r["width"]): r for r in records}
     for r in records:
         ref = by.get(("torch", r["n"], r["width"]))
         if r["backend"] == "numba" and ref:
             r["speedup_vs_torch_forward"] = round(ref["forward_ms"] / r["forward_ms"], 2)
-            r["speedup_vs_torch_forward_backward"] = round(ref["forward_backward_ms"] / r["forward_backward_ms"], 2)
+            r["speedup_vs_torch_forward_backward"] = round(
+                ref["forward_backward_ms"] / r["forward_backward_ms"], 2
+            )
     result = records
     from dsg_gym.io.atomic import atomic_write_bytes
 

@@ -13,8 +13,16 @@ def intrinsics(width: int, height: int, fov_deg: float = 60.0, dtype=torch.float
     return torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=dtype)
 
 
-def random_scene(n: int, width: int = 64, height: int = 48, channels: int = 19, seed: int = 0,
-                 dtype=torch.float32, cameras: int = 1, scale_range=(0.02, 0.1)):
+def random_scene(
+    n: int,
+    width: int = 64,
+    height: int = 48,
+    channels: int = 19,
+    seed: int = 0,
+    dtype=torch.float32,
+    cameras: int = 1,
+    scale_range=(0.02, 0.1),
+):
     """N Gaussians filling a 60-degree view at depths 2..6 in front of camera 0.
 
     Returns a dict of rasterize() keyword arguments. With ``cameras > 1`` the extra cameras
@@ -31,8 +39,9 @@ def random_scene(n: int, width: int = 64, height: int = 48, channels: int = 19, 
     viewmats = [torch.eye(4, dtype=dtype)]
     for c in range(1, cameras):
         a = 0.05 * c
-        R = torch.tensor([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]],
-                         dtype=dtype)
+        R = torch.tensor(
+            [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]], dtype=dtype
+        )
         V = torch.eye(4, dtype=dtype)
         V[:3, :3] = R
         V[:3, 3] = torch.tensor([0.05 * c, -0.02 * c, 0.1 * c], dtype=dtype)

@@ -75,21 +75,35 @@ def _profile_top(trainer, n: int, top: int = 12) -> list[dict[str, Any]]:
     total = sum(v[2] for v in st.stats.values())  # own time of every function
     rows = sorted(st.stats.items(), key=lambda kv: kv[1][2], reverse=True)[:top]
     return [
-        {"function": f"{Path(f).name}:{line}({name})", "calls": v[1], "own_ms_per_step": round(v[2] / n * 1e3, 2),
-         "share": round(v[2] / total, 4)}
+        {
+            "function": f"{Path(f).name}:{line}({name})",
+            "calls": v[1],
+            "own_ms_per_step": round(v[2] / n * 1e3, 2),
+            "share": round(v[2] / total, 4),
+        }
         for (f, line, name), v in rows
     ]
 
 
-def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | None, quick: bool,
-        profile: bool, capture: Path | None = None, iterations: int | None = None) -> dict[str, Any]:
+def run(
+    out: Path,
+    *,
+    scene: str,
+    steps: int,
+    warmup: int,
+    checkpoint: Path | None,
+    quick: bool,
+    profile: bool,
+    capture: Path | None = None,
+    iterations: int | None = None,
+) -> dict[str, Any]:
     import numba
     import torch
 
-    from train_world.cli.train import two_state_parser as dual_parser
-    from train_world.cli.train import two_state_config as config_from_args
-    from train_world.dual_state.trainer import DualTrainer
     from train_world.cli.synth import main as synth_main
+    from train_world.cli.train import two_state_config as config_from_args
+    from train_world.cli.train import two_state_parser as dual_parser
+    from train_world.dual_state.trainer import DualTrainer
 
     given = capture
     with tempfile.TemporaryDirectory() as tmp:
@@ -98,15 +112,23 @@ def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | No
             size = ["--width", "24", "--height", "24", "--views", "8", "--test-views", "1"] if quick else []
             if synth_main(["--scene", scene, "--out", str(capture), "--quiet", *size]) != 0:
                 raise RuntimeError(f"dsg-synth failed for scene {scene!r}")
-        args = [str(capture), "--out", str(Path(tmp) / "unused.dsgw"), "--preset", "quick" if quick else "default",
-                *([] if iterations is None else ["--iterations", str(iterations)])]
+        args = [
+            str(capture),
+            "--out",
+            str(Path(tmp) / "unused.dsgworld"),
+            "--preset",
+            "quick" if quick else "default",
+            *([] if iterations is None else ["--iterations", str(iterations)]),
+        ]
         cfg = config_from_args(dual_parser().parse_args(args))
         trainer = DualTrainer(capture, cfg)
         if checkpoint is not None:
             trainer.load_checkpoint(checkpoint, branch=True)
             if trainer.step != trainer.joint_start:
-                raise ValueError(f"{checkpoint}: taken at step {trainer.step}, not at the joint phase's start "
-                                 f"({trainer.joint_start})")
+                raise ValueError(
+                    f"{checkpoint}: taken at step {trainer.step}, not at the joint phase's start "
+                    f"({trainer.joint_start})"
+                )
             # reconstruction steps on the trained fields: the joint terms switched off, then the fields restored
             trainer.config = dataclasses.replace(cfg, use_align=False, use_prune=False, use_pseudo=False)
             recon = _time_steps(trainer, steps, warmup)
@@ -114,8 +136,10 @@ def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | No
             trainer.load_checkpoint(checkpoint, branch=True)
         else:
             if warmup + steps > trainer.joint_start:
-                raise ValueError(f"--warmup + --steps must stay within the reconstruction phase "
-                                 f"({trainer.joint_start} steps)")
+                raise ValueError(
+                    f"--warmup + --steps must stay within the reconstruction phase "
+                    f"({trainer.joint_start} steps)"
+                )
             recon = _time_steps(trainer, steps, warmup)
             trainer.step = trainer.t1.step = trainer.t2.step = trainer.joint_start
         joint = _time_steps(trainer, steps, warmup)
@@ -138,7 +162,9 @@ def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | No
         "joint": _summary(joint, _joint_renders(cfg)),
     }
     result["joint_over_recon"] = round(result["joint"]["ms_median"] / result["recon"]["ms_median"], 3)
-    result["ms_per_render_ratio"] = round(result["joint"]["ms_per_render"] / result["recon"]["ms_per_render"], 3)
+    result["ms_per_render_ratio"] = round(
+        result["joint"]["ms_per_render"] / result["recon"]["ms_per_render"], 3
+    )
     if top is not None:
         result["profile"] = top
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -147,18 +173,29 @@ def run(out: Path, *, scene: str, steps: int, warmup: int, checkpoint: Path | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.train_step",
-                                description=__doc__.split("\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, help="JSON file to write (default: "
-                                            "benchmarks/results/train_step/<date>-<commit>.json)")
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.train_step",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="JSON file to write (default: benchmarks/results/train_step/<date>-<commit>.json)",
+    )
     p.add_argument("--scene", default="two_blocks", help="dsg-synth scene (default two_blocks)")
     p.add_argument("--capture", type=Path, help="an existing two-state capture instead of generating --scene")
-    p.add_argument("--checkpoint", type=Path,
-                   help="two-state checkpoint at the joint phase's start (e.g. dsg-suite's recon.ckpt; needs "
-                        "--capture, the capture it was trained on)")
-    p.add_argument("--iterations", type=int,
-                   help="the training's step count, as dsg-train's (must match the checkpoint's; default: the preset's)")
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        help="two-state checkpoint at the joint phase's start (e.g. dsg-suite's recon.ckpt; needs "
+        "--capture, the capture it was trained on)",
+    )
+    p.add_argument(
+        "--iterations",
+        type=int,
+        help="the training's step count, as dsg-train's (must match the checkpoint's; default: the preset's)",
+    )
     p.add_argument("--steps", type=int, default=40, help="timed steps per phase (default 40)")
     p.add_argument("--warmup", type=int, default=5, help="untimed steps before each phase (default 5)")
     p.add_argument("--profile", action="store_true", help="also profile the joint steps (cProfile)")
@@ -169,8 +206,17 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--steps must be >= 1 and --warmup >= 0")
     if args.checkpoint is not None and args.capture is None:
         p.error("--checkpoint needs --capture (the capture the checkpoint was trained on)")
-    r = run(args.out, scene=args.scene, steps=args.steps, warmup=args.warmup, checkpoint=args.checkpoint,
-            quick=args.quick, profile=args.profile, capture=args.capture, iterations=args.iterations)
+    r = run(
+        args.out,
+        scene=args.scene,
+        steps=args.steps,
+        warmup=args.warmup,
+        checkpoint=args.checkpoint,
+        quick=args.quick,
+        profile=args.profile,
+        capture=args.capture,
+        iterations=args.iterations,
+    )
     print(json.dumps({k: r[k] for k in ("recon", "joint", "joint_over_recon")}))
     return 0
 

@@ -101,18 +101,20 @@ def run(repeats: int) -> list[dict]:
                     t0 = time.perf_counter()
                     read_stage(path)
                     read_times.append(time.perf_counter() - t0)
-                records.append({
-                    "format": suffix[1:],
-                    "gaussians": n,
-                    "objects": len(objects),
-                    "sh_degree": SH_DEGREE,
-                    "features": FEATURES,
-                    "episode_steps": 0 if ep is None else ep.num_steps,
-                    "export_s": round(statistics.median(times), 4),
-                    "export_s_all": [round(t, 4) for t in times],
-                    "read_s": round(statistics.median(read_times), 4),
-                    "bytes": os.path.getsize(path),
-                })
+                records.append(
+                    {
+                        "format": suffix[1:],
+                        "gaussians": n,
+                        "objects": len(objects),
+                        "sh_degree": SH_DEGREE,
+                        "features": FEATURES,
+                        "episode_steps": 0 if ep is None else ep.num_steps,
+                        "export_s": round(statistics.median(times), 4),
+                        "export_s_all": [round(t, 4) for t in times],
+                        "read_s": round(statistics.median(read_times), 4),
+                        "bytes": os.path.getsize(path),
+                    }
+                )
                 print(json.dumps(records[-1]), flush=True)
     return records
 
@@ -155,8 +157,11 @@ def run_bundled(repeats: int) -> dict:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, help="JSON file to write (default: "
-                                                 "benchmarks/results/usd_export/<date>-<commit>.json)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        help="JSON file to write (default: benchmarks/results/usd_export/<date>-<commit>.json)",
+    )
     parser.add_argument("--repeats", type=int, default=5, help="exports per configuration (median)")
     parser.add_argument("--quick", action="store_true", help="one repeat each")
     args = parser.parse_args(argv)

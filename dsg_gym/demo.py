@@ -68,10 +68,12 @@ def build_scene(seed: int = 0):
     import torch
 
     g = torch.Generator().manual_seed(seed)
-    parts = [_table(g),
-             _object(g, "box", (-0.15, -0.05, 0.0), 0.05, (0.9, 0.3, 0.25), 1),
-             _object(g, "ball", (0.12, 0.08, 0.0), 0.045, (0.3, 0.75, 0.35), 2),
-             _object(g, "cylinder", (0.05, -0.15, 0.0), 0.04, (0.3, 0.45, 0.95), 3)]
+    parts = [
+        _table(g),
+        _object(g, "box", (-0.15, -0.05, 0.0), 0.05, (0.9, 0.3, 0.25), 1),
+        _object(g, "ball", (0.12, 0.08, 0.0), 0.045, (0.3, 0.75, 0.35), 2),
+        _object(g, "cylinder", (0.05, -0.15, 0.0), 0.04, (0.3, 0.45, 0.95), 3),
+    ]
     means = torch.cat([p[0] for p in parts])
     scales = torch.cat([p[1] for p in parts])
     rgb = torch.cat([p[2] for p in parts])
@@ -91,10 +93,17 @@ def orbit_cameras(n: int, size: int, radius: float = 0.75, height: float = 0.45)
 
     from dsg_gym.geometry import intrinsics_from_fov, look_at_viewmat
 
-    eyes = orbit_eyes((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), math.hypot(radius, height), (math.atan2(height, radius),),
-                      n, azimuth0=0.3 - 0.5 * math.pi)
-    viewmats = look_at_viewmat(torch.from_numpy(eyes).float(), torch.zeros(n, 3),
-                               torch.tensor([0.0, 0.0, 1.0]).expand(n, 3))
+    eyes = orbit_eyes(
+        (0.0, 0.0, 0.0),
+        (0.0, 0.0, 1.0),
+        math.hypot(radius, height),
+        (math.atan2(height, radius),),
+        n,
+        azimuth0=0.3 - 0.5 * math.pi,
+    )
+    viewmats = look_at_viewmat(
+        torch.from_numpy(eyes).float(), torch.zeros(n, 3), torch.tensor([0.0, 0.0, 1.0]).expand(n, 3)
+    )
     Ks = intrinsics_from_fov(math.radians(50.0), size, size).expand(n, 3, 3)  # noqa: N806
     return viewmats.float().contiguous(), Ks.float().contiguous()
 
@@ -136,8 +145,10 @@ def run_env_demo(out: str | os.PathLike, size: int, seed: int, frames: int = 6) 
     top = np.concatenate([shots[i]["rgb"] for i in pick], axis=1)
     bottom = np.concatenate([palette[shots[i]["mask"]] for i in pick], axis=1)
     path = _save_png(np.concatenate([top, bottom], axis=0), out)
-    print(f"DSGWorld-v0 on the bundled world: {steps} expert steps at {rate:.0f} steps/s "
-          f"({size}x{size}, rgb+mask), goal {'reached' if success else 'not reached'}")
+    print(
+        f"DSGWorld-v0 on the bundled world: {steps} expert steps at {rate:.0f} steps/s "
+        f"({size}x{size}, rgb+mask), goal {'reached' if success else 'not reached'}"
+    )
     print(f"wrote {path.resolve()}")
     return path
 
@@ -161,7 +172,9 @@ def run_procedural_demo(out: str | os.PathLike, size: int, views: int = 4) -> Pa
     top = np.concatenate(list(rgb), axis=1)
     bottom = np.concatenate(list(PALETTE[ids]), axis=1)
     path = _save_png(np.concatenate([top, bottom], axis=0), out)
-    print(f"rendered {means.shape[0]} Gaussians into {views} views of {size}x{size} "
-          f"(RGB + 4 id channels) in {ms:.1f} ms")
+    print(
+        f"rendered {means.shape[0]} Gaussians into {views} views of {size}x{size} "
+        f"(RGB + 4 id channels) in {ms:.1f} ms"
+    )
     print(f"wrote {path.resolve()}")
     return path

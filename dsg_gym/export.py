@@ -104,8 +104,10 @@ def resolve_poses(wm: WorldModel, poses) -> np.ndarray:
         s = str(poses)
         if isinstance(poses, Path) or Path(s).suffix in POSE_FILE_SUFFIXES or Path(s).exists():
             return load_poses_file(s, k)
-        raise ValueError(f"unknown state {s!r}; this world has states {sorted(wm.states)} "
-                         f"(or give a .npy/.npz/.json poses file)")
+        raise ValueError(
+            f"unknown state {s!r}; this world has states {sorted(wm.states)} "
+            f"(or give a .npy/.npz/.json poses file)"
+        )
     if isinstance(poses, str):
         return wm.state_poses(poses)
     return _as_matrices(poses, k, "poses")
@@ -128,7 +130,7 @@ def _resolve_episode(episode, k: int):
 
 # ----------------------------------------------------------------------------------------- USD
 def export_world_usd(world, out, *, poses=None, episode=None, meters_per_unit: float = 1.0) -> Path:
-    """Write ``world`` (a world file path or a :class:`WorldModel`) as a USD stage (see README "USD export").
+    """Write ``world`` (a world file path or a :class:`WorldModel`) as a USD stage (see docs/usd.md).
 
     ``out``: ``.usdc`` (binary, appended when ``out`` has no suffix) or ``.usda``. ``poses``: the objects'
     (untimed) poses: a state name, ``[K,4,4]`` / ``[K,7]`` array or a poses file; default the reference state,
@@ -157,8 +159,9 @@ def export_world_usd(world, out, *, poses=None, episode=None, meters_per_unit: f
     t = wm.table
     table = [[t.xmin, t.ymin, t.z], [t.xmax, t.ymax, t.z]]
     out.parent.mkdir(parents=True, exist_ok=True)
-    return export_stage(out, wm.background, objects, cameras, episode=ep, table_bounds=table,
-                        meters_per_unit=meters_per_unit)
+    return export_stage(
+        out, wm.background, objects, cameras, episode=ep, table_bounds=table, meters_per_unit=meters_per_unit
+    )
 
 
 # ----------------------------------------------------------------------------------------- PLY

@@ -314,6 +314,7 @@ def is_rigid(mat: Tensor, atol: float = 1e-6) -> Tensor:
 
 # --------------------------------------------------------------------------- cameras
 
+
 def _flip_yz(mat: Tensor) -> Tensor:
     """Negate the camera y and z axes (columns 1 and 2 of a camera-to-world matrix)."""
     sign = torch.tensor([1, -1, -1, 1], dtype=mat.dtype, device=mat.device)

@@ -254,12 +254,20 @@ class PhysicsProxy:
         dmin = np.inf if distance else np.nan
         for i in range(self.num_objects if distance else 0):
             for j in range(i + 1, self.num_objects):
-                dist = mujoco.mj_geomDistance(m, d, int(self._geom[i]), int(self._geom[j]), distance_range, None)
+                dist = mujoco.mj_geomDistance(
+                    m, d, int(self._geom[i]), int(self._geom[j]), distance_range, None
+                )
                 dmin = min(dmin, float(dist))
         return CollisionReport(pairs, tuple(deepest[p] for p in pairs), tuple(oob), dmin)
 
     def settle(
-        self, poses, *, max_time: float = 1.5, lin_tol: float = 2e-3, ang_tol: float = 2e-2, calm_steps: int = 25
+        self,
+        poses,
+        *,
+        max_time: float = 1.5,
+        lin_tol: float = 2e-3,
+        ang_tol: float = 2e-2,
+        calm_steps: int = 25,
     ) -> np.ndarray:
         """Let every object fall and come to rest under gravity from ``poses`` (zero initial velocity);
         returns the resting poses ``[K,7]`` float64 (unit quaternions). Stops when all linear / angular

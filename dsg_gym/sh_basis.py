@@ -13,10 +13,16 @@ __all__ = ["C0", "C1", "C2", "C3", "basis_columns", "num_sh_bases", "rotate_sh",
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
-C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-      0.5462742152960396)
-C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-      -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 
 
 def num_sh_bases(degree: int) -> int:
@@ -79,7 +85,9 @@ def sh_rotation(R: np.ndarray, degree: int) -> np.ndarray:
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         raise ValueError(f"sh_rotation: R must be a finite [3,3] rotation, got shape {R.shape}")
     dirs = _sphere_points(64)
-    D = np.linalg.lstsq(sh_basis(degree, dirs), sh_basis(degree, dirs @ R), rcond=None)[0]  # Y(d) D = Y(R^T d)
+    D = np.linalg.lstsq(sh_basis(degree, dirs), sh_basis(degree, dirs @ R), rcond=None)[
+        0
+    ]  # Y(d) D = Y(R^T d)
     blocks = np.zeros((k, k), dtype=bool)
     for lvl in range(degree + 1):
         blocks[lvl * lvl : (lvl + 1) ** 2, lvl * lvl : (lvl + 1) ** 2] = True

@@ -19,7 +19,10 @@ def check_splat_options(rasterize_mode, eps2d) -> tuple[str, float]:
     """``(rasterize_mode, float(eps2d))``; ValueError naming the bad one."""
     if rasterize_mode not in RASTERIZE_MODES:
         raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
-    if isinstance(eps2d, bool) or not isinstance(eps2d, (int, float)) or not (math.isfinite(eps2d)
-                                                                                and 0 < eps2d <= 10):
+    if (
+        isinstance(eps2d, bool)
+        or not isinstance(eps2d, (int, float))
+        or not (math.isfinite(eps2d) and 0 < eps2d <= 10)
+    ):
         raise ValueError(f"eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
     return str(rasterize_mode), float(eps2d)

@@ -161,7 +161,7 @@ class World:
 def transform_gaussians(g: GaussianSet, T: np.ndarray, label: int | None = None) -> GaussianSet:
     """``g`` moved by the rigid transform ``T`` ``[4,4]``: centres and rotations (float64 arithmetic,
     renormalised quaternions; zero quaternions read as the identity) and the SH bands, rotated with the
-    Gaussians so their view-dependent colour turns with them (:func:`dsg_gym.splat.sh.rotate_sh`).
+    Gaussians so their view-dependent colour turns with them (:func:`dsg_gym.sh_basis.rotate_sh`).
     ``label``: set every Gaussian's label (None: keep). Encodings (raw logits/log-scales) are kept."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -188,8 +188,9 @@ def splat_options(metadata: Mapping[str, Any]) -> dict[str, Any]:
     """``{"rasterize_mode", "eps2d"}`` from a world's metadata (absent: "classic", 0.3); WorldFormatError when
     they are not valid."""
     try:
-        mode, eps2d = check_splat_options(metadata.get("rasterize_mode", "classic"),
-                                          metadata.get("eps2d", DEFAULT_EPS2D))
+        mode, eps2d = check_splat_options(
+            metadata.get("rasterize_mode", "classic"), metadata.get("eps2d", DEFAULT_EPS2D)
+        )
     except ValueError as e:
         raise WorldFormatError(f"world metadata: {e}") from None
     return {"rasterize_mode": mode, "eps2d": eps2d}

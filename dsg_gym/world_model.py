@@ -135,8 +135,9 @@ class WorldModel:
         def strip(g: GaussianSet) -> GaussianSet:
             return dataclasses.replace(g, features=np.zeros((g.num, 0), np.float32))
 
-        return dataclasses.replace(self, background=strip(self.background),
-                                   objects=tuple(strip(o) for o in self.objects))
+        return dataclasses.replace(
+            self, background=strip(self.background), objects=tuple(strip(o) for o in self.objects)
+        )
 
     def state_poses(self, name: str) -> np.ndarray:
         """``[K,4,4]`` float64 copy of a captured state's poses; ValueError for an unknown state."""
@@ -169,7 +170,9 @@ class WorldModel:
             ids = tuple(int(i) for i, _ in items)
             names = tuple(str(v[0]) for _, v in items)
             sets = tuple(v[1] for _, v in items)
-            if not isinstance(world.background, GaussianSet) or not all(isinstance(g, GaussianSet) for g in sets):
+            if not isinstance(world.background, GaussianSet) or not all(
+                isinstance(g, GaussianSet) for g in sets
+            ):
                 raise WorldModelError("world background/objects are not GaussianSets")
             meta = dict(getattr(world, "metadata", {}) or {})
             states = _world_states(world)
@@ -212,8 +215,9 @@ def transform_gaussians(gs: GaussianSet, pose7: np.ndarray, label: int | None = 
     renormalised quaternions, SH rotated with the Gaussians), float32 centres, encodings dropped."""
     m = pose7_to_matrix(np.asarray(pose7, dtype=np.float64))
     out = _transform_matrix(gs, m, label=label)
-    return dataclasses.replace(out, means=out.means.astype(np.float32), quats=out.quats.astype(np.float32)
-                               ).without_encodings()
+    return dataclasses.replace(
+        out, means=out.means.astype(np.float32), quats=out.quats.astype(np.float32)
+    ).without_encodings()
 
 
 def derive_table_bounds(
@@ -247,7 +251,9 @@ def _table_from_metadata(meta: Mapping[str, Any]) -> TableBounds | None:
         return None
     b = np.asarray(t["bounds"], dtype=np.float64)
     if b.shape != (2, 3):
-        raise WorldModelError(f"metadata table.bounds: expected [[x0, y0, z], [x1, y1, z]], got shape {b.shape}")
+        raise WorldModelError(
+            f"metadata table.bounds: expected [[x0, y0, z], [x1, y1, z]], got shape {b.shape}"
+        )
     z = float(t.get("top_z", b[0, 2]))
     return TableBounds(float(b[0, 0]), float(b[1, 0]), float(b[0, 1]), float(b[1, 1]), z)
 

@@ -28,7 +28,9 @@ def box_gaussians(half: float, rgb, spacing: float = 0.008) -> GaussianSet:
     pts = np.concatenate(pts + [c])
     n = len(pts)
     q = np.tile([1.0, 0, 0, 0], (n, 1))
-    return GaussianSet.from_rgb(pts, q, np.full((n, 3), 0.6 * spacing), np.full(n, 0.95), np.tile(rgb, (n, 1)))
+    return GaussianSet.from_rgb(
+        pts, q, np.full((n, 3), 0.6 * spacing), np.full(n, 0.95), np.tile(rgb, (n, 1))
+    )
 
 
 def two_box_world() -> WorldModel:

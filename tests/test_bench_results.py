@@ -24,7 +24,9 @@ def test_default_out_names_benchmark_date_and_commit(tmp_path):
     assert default_out("pareto", "", date=day, root=tmp_path) == tmp_path / "pareto" / f"2026-11-24-{commit}"
     assert not (tmp_path / "pareto").exists()  # nothing is created
     today = default_out("collect")
-    assert re.fullmatch(r"\d{4}-\d{2}-\d{2}-[0-9a-z]+\.json", today.name) and today.parent == RESULTS / "collect"
+    assert (
+        re.fullmatch(r"\d{4}-\d{2}-\d{2}-[0-9a-z]+\.json", today.name) and today.parent == RESULTS / "collect"
+    )
     assert datetime.date.fromisoformat(today.name[:10]) == datetime.date.today()
     for bad in ("", "a/b", ".hidden"):
         with pytest.raises(ValueError, match="plain name"):
@@ -43,9 +45,10 @@ def test_outside_git_the_commit_is_nocommit(tmp_path, monkeypatch):
 
 def test_every_benchmark_with_an_out_option_defaults_to_it():
     """Each script taking ``--out`` fills it from :func:`default_out` when it is not given."""
-    scripts = [p for p in sorted((REPO / "benchmarks").glob("*.py")) if 'add_argument("--out"' in p.read_text()]
+    out_option = re.compile(r'add_argument\(\s*"--out"')
+    scripts = [p for p in sorted((REPO / "benchmarks").glob("*.py")) if out_option.search(p.read_text())]
     assert {"collect", "env_step", "pareto", "render", "stress", "train_step"} <= {p.stem for p in scripts}
     for path in scripts:
         text = path.read_text()
-        assert f'default_out("{path.stem}"' in text, path.name
-        assert not re.search(r'add_argument\("--out"[^)]*required=True', text), path.name
+        assert re.search(rf'default_out\(\s*"{path.stem}"', text), path.name
+        assert not re.search(r'add_argument\(\s*"--out"[^)]*required=True', text), path.name

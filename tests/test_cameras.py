@@ -46,8 +46,11 @@ def test_orbit_rings_the_centre():
     for e in eyes:
         np.testing.assert_allclose(_to_camera(look_at(e, centre, u), centre)[:2], 0.0, atol=1e-12)
     # azimuth0 turns the ring: view 0 with azimuth0 = 2 pi / 8 is view 1 without
-    np.testing.assert_allclose(orbit_eyes(centre, up, 1.5, (0.3,), 8, 2 * math.pi / 8)[0],
-                               orbit_eyes(centre, up, 1.5, (0.3,), 8)[1], atol=1e-12)
+    np.testing.assert_allclose(
+        orbit_eyes(centre, up, 1.5, (0.3,), 8, 2 * math.pi / 8)[0],
+        orbit_eyes(centre, up, 1.5, (0.3,), 8)[1],
+        atol=1e-12,
+    )
     with pytest.raises(ValueError, match="at least one view"):
         orbit_eyes(centre, up, 1.5, elev, 0)
 
@@ -62,8 +65,10 @@ def test_cameras_type():
     assert np.array_equal(c.viewmats.astype(np.float32), vm32)  # float32 storage converts back exactly
     r = c.resized(128, 96)
     assert (r.width, r.height) == (128, 96) and r.Ks[0, 0, 2] == 64.0 and r.Ks[0, 1, 1] == 2 * c.Ks[0, 1, 1]
-    for bad in (dict(viewmats=np.zeros((0, 4, 4)), Ks=np.zeros((0, 3, 3))),
-                dict(viewmats=np.eye(4)[None], Ks=np.eye(3)[None] * np.nan),
-                dict(viewmats=np.eye(4)[None], Ks=np.eye(3)[None], width=0)):
+    for bad in (
+        dict(viewmats=np.zeros((0, 4, 4)), Ks=np.zeros((0, 3, 3))),
+        dict(viewmats=np.eye(4)[None], Ks=np.eye(3)[None] * np.nan),
+        dict(viewmats=np.eye(4)[None], Ks=np.eye(3)[None], width=0),
+    ):
         with pytest.raises(ValueError, match="Cameras"):
             Cameras(**{"width": 8, "height": 8, **bad})

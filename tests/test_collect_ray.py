@@ -27,7 +27,9 @@ def test_blocks_split_contiguously():
 def test_ray_two_workers_equals_local(tmp_path):
     common = {"env_kwargs": KW, "policy": "expert", "episodes": 4, "seed": 3, "max_episode_steps": 60}
     # flush_seconds: shards by episode count only (a slow machine must not split them by time)
-    res = collect(tmp_path / "ray", backend="ray", ray_workers=2, keep_shards=True, flush_seconds=1e9, **common)
+    res = collect(
+        tmp_path / "ray", backend="ray", ray_workers=2, keep_shards=True, flush_seconds=1e9, **common
+    )
     assert not ray.is_initialized()  # the instance collect() started is shut down again
     shard_dirs = list((tmp_path / "ray" / ".dsg-collect" / "dsgworld__expert-v0" / "shards").iterdir())
     assert len(shard_dirs) == 2  # one dataset per worker, combined at the end

@@ -129,8 +129,9 @@ def test_accumulated_weight_is_the_colour_gradient_of_ones(splat):
     vm, K, W, H = _two_cameras()
     imp = gaussian_importance(g, vm, K, W, H, **splat)
     ones = torch.ones((2, g.num, 1), requires_grad=True)
-    img, _, _ = rasterize(_t(g.means), _t(g.quats), _t(g.scales), _t(g.opacities), ones, _t(vm), _t(K), W, H,
-                          **splat)
+    img, _, _ = rasterize(
+        _t(g.means), _t(g.quats), _t(g.scales), _t(g.opacities), ones, _t(vm), _t(K), W, H, **splat
+    )
     img.sum().backward()
     per_cam = ones.grad[..., 0].double().numpy()  # d(sum of image)/d(colour) = sum_p T alpha
     assert imp.num_cameras == 2 and per_cam.max() > 1.0  # the Gaussians are visible

@@ -5,11 +5,11 @@ from __future__ import annotations
 import math
 
 import pytest
-from _captures import tiny_capture
 import torch
+from _captures import tiny_capture
 
-from train_world.cli.train import two_state_parser as dual_parser
 from train_world.cli.train import two_state_config as config_from_args
+from train_world.cli.train import two_state_parser as dual_parser
 from train_world.single_state.data import load_training_data
 from train_world.single_state.field import SegmentedField
 from train_world.single_state.losses import depth_loss
@@ -50,8 +50,9 @@ def _wall(z: float) -> SegmentedField:
     xs = torch.linspace(-1.0, 1.0, 21)
     gx, gy = torch.meshgrid(xs, xs, indexing="ij")
     means = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.full((441,), z)], -1)
-    f = SegmentedField.from_points(means, torch.full((441, 3), 0.5), torch.full((441,), 0.08), sh_degree=0,
-                                   num_features=4)
+    f = SegmentedField.from_points(
+        means, torch.full((441, 3), 0.5), torch.full((441,), 0.08), sh_degree=0, num_features=4
+    )
     with torch.no_grad():
         f.opacity_logits.fill_(6.0)
     return f
@@ -108,9 +109,11 @@ def test_depth_term_pulls_the_field_onto_the_captured_depth(tiny):
 
 
 def test_depth_weight_option_and_validation(tiny):
-    args = dual_parser().parse_args([str(tiny), "--out", "w.dsgw", "--preset", "quick", "--depth-weight", "0.3"])
+    args = dual_parser().parse_args(
+        [str(tiny), "--out", "w.dsgworld", "--preset", "quick", "--depth-weight", "0.3"]
+    )
     assert config_from_args(args).base.preset.lambda_depth == 0.3
-    args = dual_parser().parse_args([str(tiny), "--out", "w.dsgw", "--preset", "quick"])
+    args = dual_parser().parse_args([str(tiny), "--out", "w.dsgworld", "--preset", "quick"])
     assert config_from_args(args).base.preset.lambda_depth == 0.0  # off unless asked for
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="lambda_depth"):

@@ -8,19 +8,19 @@ import math
 
 import numpy as np
 import pytest
-from _captures import tiny_capture
 import torch
+from _captures import tiny_capture
 
 from dsg_gym.world import load_world
-from train_world.suite.baselines import knn_complete, train_single_state
+from train_world.cli import train as recon_cli
+from train_world.cli.eval import main as ev_main
 from train_world.dual_state.losses import align_loss, pseudo_loss
 from train_world.dual_state.merge import co_paste_background, co_prune_masks, object_footprints_xy
 from train_world.dual_state.pseudo import footprint_radii, pseudo_state_valid, sample_pseudo_state
 from train_world.dual_state.transfer import ObjectTransfer, gaussian_transforms, relative_transforms
 from train_world.eval.evaluate import evaluate
-from train_world.cli.eval import main as ev_main
-from train_world.cli import train as recon_cli
 from train_world.single_state.field import Classifier, SegmentedField
+from train_world.suite.baselines import knn_complete, train_single_state
 
 
 def _pose(x, y, z=0.05, yaw=0.0):
@@ -56,8 +56,9 @@ def test_object_transfer_moves_objects_and_keeps_background():
     tr = ObjectTransfer(labels, T)
     m2, q2 = tr(means, quats)
     mr, qr = rigid_transform_gaussians(means, quats, M)
-    assert torch.allclose(m2, mr, atol=1e-6) and torch.allclose(q2 * torch.sign(q2[:, :1]), qr * torch.sign(qr[:, :1]),
-                                                                atol=1e-6)
+    assert torch.allclose(m2, mr, atol=1e-6) and torch.allclose(
+        q2 * torch.sign(q2[:, :1]), qr * torch.sign(qr[:, :1]), atol=1e-6
+    )
     assert torch.equal(m2[[0, 4]], means[[0, 4]]) and torch.equal(q2[[0, 4]], quats[[0, 4]])
     dirs = torch.randn(2, 5, 3, generator=g)
     assert torch.allclose(tr.rotate_dirs(dirs), torch.einsum("cnj,nji->cni", dirs, tr.rotations()), atol=1e-6)
@@ -69,13 +70,21 @@ def test_object_transfer_renders_like_per_gaussian_matrices_with_sh_turning():
     g = torch.Generator().manual_seed(3)
     n = 60
     pts = torch.randn(n, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, 1.5])
-    f = SegmentedField.from_points(pts, torch.rand(n, 3, generator=g), torch.full((n,), 0.04), sh_degree=2,
-                                   opacity=0.7, features=torch.randn(n, 16, generator=g))
+    f = SegmentedField.from_points(
+        pts,
+        torch.rand(n, 3, generator=g),
+        torch.full((n,), 0.04),
+        sh_degree=2,
+        opacity=0.7,
+        features=torch.randn(n, 16, generator=g),
+    )
     with torch.no_grad():
         f.shN.normal_(0.0, 0.2, generator=g)  # view-dependent colour, so turning the SH matters
     labels = (torch.arange(n) % 3).long()  # background, object 1, object 2
-    T = relative_transforms(np.stack([_pose(0.0, 0.0), _pose(0.05, 0.0)]),
-                            np.stack([_pose(0.03, 0.02, yaw=0.7), _pose(-0.02, 0.04, yaw=-1.1)]))
+    T = relative_transforms(
+        np.stack([_pose(0.0, 0.0), _pose(0.05, 0.0)]),
+        np.stack([_pose(0.03, 0.02, yaw=0.7), _pose(-0.02, 0.04, yaw=-1.1)]),
+    )
     vm, K = _camera()
     outs, grads = [], []
     for transform in (ObjectTransfer(labels, T), gaussian_transforms(labels, T)):
@@ -280,7 +289,7 @@ def tiny(tmp_path_factory):
 
 
 def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
-    ours = tmp_path / "ours.dsgw"
+    ours = tmp_path / "ours.dsgworld"
     rc = recon_cli.main(
         [str(tiny), "--out", str(ours), "--preset", "quick", "--prune-every", "50", "--quiet"]
     )
@@ -292,7 +301,7 @@ def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
     assert set(w.cameras) == {"state1", "state2"} and "test_0" in w.poses
     n = w.background.num + sum(o.gaussians.num for o in w.objects.values())
     assert n == w.metadata["num_gaussians"] and all(o.gaussians.num > 20 for o in w.objects.values())
-    base = tmp_path / "a.dsgw"
+    base = tmp_path / "a.dsgworld"
     train_single_state(tiny, base, preset="quick")  # same preset, 300 steps of one field
     r_ours = evaluate(ours, tiny, tmp_path / "eval_ours", state="test_0")["mean"]
     r_a = evaluate(base, tiny, tmp_path / "eval_a", state="test_0")["mean"]
@@ -329,8 +338,19 @@ def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
 def _dual_cli(tiny, out, *extra):
     from train_world.cli import train as dual_cli
 
-    args = [str(tiny), "--out", str(out), "--preset", "quick", "--iterations", "60", "--prune-every", "10",
-            "--quiet", *extra]
+    args = [
+        str(tiny),
+        "--out",
+        str(out),
+        "--preset",
+        "quick",
+        "--iterations",
+        "60",
+        "--prune-every",
+        "10",
+        "--quiet",
+        *extra,
+    ]
     assert dual_cli.main_two_state(args) == 0
     return load_world(out)
 
@@ -346,31 +366,86 @@ def test_dual_resume_and_branch_reproduce_uninterrupted_runs(tiny, tmp_path):
     from train_world.cli import train as dual_cli
     from train_world.dual_state.trainer import DualTrainer
 
-    full = _dual_cli(tiny, tmp_path / "full.dsgw")
+    full = _dual_cli(tiny, tmp_path / "full.dsgworld")
     # killed at step 45 (past the joint start 30, checkpoint every 10 at this length), then --resume
-    cfg = dual_cli.two_state_config(dual_cli.two_state_parser().parse_args(
-        [str(tiny), "--out", "x", "--preset", "quick", "--iterations", "60", "--prune-every", "10"]))
-    tr = DualTrainer(tiny, cfg, checkpoint=tmp_path / "res.dsgw.ckpt")
+    cfg = dual_cli.two_state_config(
+        dual_cli.two_state_parser().parse_args(
+            [str(tiny), "--out", "x", "--preset", "quick", "--iterations", "60", "--prune-every", "10"]
+        )
+    )
+    tr = DualTrainer(tiny, cfg, checkpoint=tmp_path / "res.dsgworld.ckpt")
     tr.train(progress=False, stop_after=45)
     assert tr.last_checkpoint_step is not None and 30 < tr.last_checkpoint_step <= 45
-    resumed = _dual_cli(tiny, tmp_path / "res.dsgw", "--resume")
+    resumed = _dual_cli(tiny, tmp_path / "res.dsgworld", "--resume")
     _same_world(full, resumed)
     # the ablation B+C shares its reconstruction phase with B+C+P: branching from a checkpoint taken at the
     # joint start gives the same world as a separate B+C run
     ck = tmp_path / "recon.ckpt"
-    assert dual_cli.main_two_state([str(tiny), "--out", str(tmp_path / "r.dsgw"), "--preset", "quick", "--iterations",
-                          "60", "--prune-every", "10", "--quiet", "--stop-at-joint", "--checkpoint", str(ck)]) == 0
-    assert not (tmp_path / "r.dsgw").exists()
-    sep = _dual_cli(tiny, tmp_path / "bc.dsgw", "--no-pseudo")
-    br = _dual_cli(tiny, tmp_path / "bc_branch.dsgw", "--no-pseudo", "--branch-from", str(ck))
+    assert (
+        dual_cli.main_two_state(
+            [
+                str(tiny),
+                "--out",
+                str(tmp_path / "r.dsgworld"),
+                "--preset",
+                "quick",
+                "--iterations",
+                "60",
+                "--prune-every",
+                "10",
+                "--quiet",
+                "--stop-at-joint",
+                "--checkpoint",
+                str(ck),
+            ]
+        )
+        == 0
+    )
+    assert not (tmp_path / "r.dsgworld").exists()
+    sep = _dual_cli(tiny, tmp_path / "bc.dsgworld", "--no-pseudo")
+    br = _dual_cli(tiny, tmp_path / "bc_branch.dsgworld", "--no-pseudo", "--branch-from", str(ck))
     _same_world(sep, br)
     # a checkpoint past the joint start, or from other options, cannot be branched from
-    assert dual_cli.main_two_state([str(tiny), "--out", str(tmp_path / "z.dsgw"), "--preset", "quick", "--iterations",
-                          "60", "--prune-every", "10", "--quiet", "--branch-from",
-                          str(tmp_path / "full.dsgw.ckpt")]) == 2
-    assert dual_cli.main_two_state([str(tiny), "--out", str(tmp_path / "z.dsgw"), "--preset", "quick", "--iterations",
-                          "60", "--prune-every", "10", "--tau", "0.05", "--quiet", "--branch-from",
-                          str(ck)]) == 2
+    assert (
+        dual_cli.main_two_state(
+            [
+                str(tiny),
+                "--out",
+                str(tmp_path / "z.dsgworld"),
+                "--preset",
+                "quick",
+                "--iterations",
+                "60",
+                "--prune-every",
+                "10",
+                "--quiet",
+                "--branch-from",
+                str(tmp_path / "full.dsgworld.ckpt"),
+            ]
+        )
+        == 2
+    )
+    assert (
+        dual_cli.main_two_state(
+            [
+                str(tiny),
+                "--out",
+                str(tmp_path / "z.dsgworld"),
+                "--preset",
+                "quick",
+                "--iterations",
+                "60",
+                "--prune-every",
+                "10",
+                "--tau",
+                "0.05",
+                "--quiet",
+                "--branch-from",
+                str(ck),
+            ]
+        )
+        == 2
+    )
 
 
 def test_dual_non_finite_gradient_stops_before_the_fields_change(tiny, tmp_path):
@@ -378,8 +453,11 @@ def test_dual_non_finite_gradient_stops_before_the_fields_change(tiny, tmp_path)
     from train_world.dual_state.trainer import DualTrainer
     from train_world.single_state.trainer import TrainingDiverged
 
-    cfg = dual_cli.two_state_config(dual_cli.two_state_parser().parse_args(
-        [str(tiny), "--out", "x", "--preset", "quick", "--iterations", "40"]))
+    cfg = dual_cli.two_state_config(
+        dual_cli.two_state_parser().parse_args(
+            [str(tiny), "--out", "x", "--preset", "quick", "--iterations", "40"]
+        )
+    )
     tr = DualTrainer(tiny, cfg)
     tr.train(progress=False, stop_after=25)  # into the joint phase
     before = {k: v.detach().clone() for k, v in tr.t2.field.params().items()}
@@ -404,13 +482,18 @@ def test_two_state_training_has_its_own_step_count_and_field_cap():
     assert (d.iterations, d.max_gaussians) == (p.dual_iterations, p.dual_max_gaussians)
     f = p.dual_iterations / p.iterations  # the whole schedule follows the step count
     assert (d.densify_until, d.reset_every) == (round(p.densify_until * f), round(p.reset_every * f))
-    cfg = dual_cli.two_state_config(dual_cli.two_state_parser().parse_args(["cap", "--out", "x", "--holdout-every", "8"]))
+    cfg = dual_cli.two_state_config(
+        dual_cli.two_state_parser().parse_args(["cap", "--out", "x", "--holdout-every", "8"])
+    )
     assert cfg.base.preset == d  # what dsg-train on two states uses by default
     # the joint phase starts at the preset's fraction unless --joint-from says otherwise
     assert cfg.joint_from == p.dual_joint_from and 0.5 <= p.dual_joint_from < 1
     assert round(cfg.joint_from * d.iterations) == round(p.dual_iterations * p.dual_joint_from)
-    cfg = dual_cli.two_state_config(dual_cli.two_state_parser().parse_args(["cap", "--out", "x", "--holdout-every", "8",
-                                                                   "--joint-from", "0.25"]))
+    cfg = dual_cli.two_state_config(
+        dual_cli.two_state_parser().parse_args(
+            ["cap", "--out", "x", "--holdout-every", "8", "--joint-from", "0.25"]
+        )
+    )
     assert cfg.joint_from == 0.25
     assert get_preset("paper").dual_joint_from == 0.5  # DSG-World's 10k + 10k
     with pytest.raises(ValueError, match="dual_joint_from"):
@@ -439,30 +522,51 @@ def test_knn_completion_fills_the_hole_not_the_table_seen_around_the_object():
     n = len(pts)
     feats = np.zeros((n, 4), np.float32)
     feats[:, 0] = 1.0
-    bg = GaussianSet.from_rgb(pts, np.tile([1.0, 0, 0, 0], (n, 1)), np.tile([0.0015, 0.0015, 0.0003], (n, 1)),
-                              np.full(n, 0.9), np.full((n, 3), 0.4), features=feats)
+    bg = GaussianSet.from_rgb(
+        pts,
+        np.tile([1.0, 0, 0, 0], (n, 1)),
+        np.tile([0.0015, 0.0015, 0.0003], (n, 1)),
+        np.full(n, 0.9),
+        np.full((n, 3), 0.4),
+        features=feats,
+    )
     ang = np.linspace(0, 2 * np.pi, 64, endpoint=False)
-    obj_pts = np.concatenate([np.stack([0.03 * np.cos(ang), 0.03 * np.sin(ang), np.full(64, h)], 1)
-                              for h in (-0.02, 0.0, 0.02)])
+    obj_pts = np.concatenate(
+        [np.stack([0.03 * np.cos(ang), 0.03 * np.sin(ang), np.full(64, h)], 1) for h in (-0.02, 0.0, 0.02)]
+    )
     m = len(obj_pts)
-    obj = GaussianSet.from_rgb(obj_pts, np.tile([1.0, 0, 0, 0], (m, 1)), np.full((m, 3), 0.003), np.full(m, 0.9),
-                               np.full((m, 3), 0.8), features=np.zeros((m, 4), np.float32))
+    obj = GaussianSet.from_rgb(
+        obj_pts,
+        np.tile([1.0, 0, 0, 0], (m, 1)),
+        np.full((m, 3), 0.003),
+        np.full(m, 0.9),
+        np.full((m, 3), 0.8),
+        features=np.zeros((m, 4), np.float32),
+    )
     pose = np.eye(4)[None].copy()
     pose[0, 2, 3] = 0.02
-    world = World(background=bg, objects={1: WorldObject("can", obj)}, poses={"state1": pose}, cameras={},
-                  classifier_weight=np.zeros((2, 4), np.float32), classifier_bias=np.zeros(2, np.float32),
-                  metadata={"reference_state": "state1", "table": {"bounds": [[-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]]}})
+    world = World(
+        background=bg,
+        objects={1: WorldObject("can", obj)},
+        poses={"state1": pose},
+        cameras={},
+        classifier_weight=np.zeros((2, 4), np.float32),
+        classifier_bias=np.zeros(2, np.float32),
+        metadata={"reference_state": "state1", "table": {"bounds": [[-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]]}},
+    )
     done = knn_complete(world, spacing=0.004)
-    added = done.background.means[bg.num:]
+    added = done.background.means[bg.num :]
     r = np.linalg.norm(added[:, :2], axis=1)
     assert len(added) > 0 and r.max() < 0.02 + 0.004 + 1e-6  # nothing over the table that was seen
-    hole = np.stack(np.meshgrid(np.linspace(-0.019, 0.019, 15), np.linspace(-0.019, 0.019, 15)), -1).reshape(-1, 2)
+    hole = np.stack(np.meshgrid(np.linspace(-0.019, 0.019, 15), np.linspace(-0.019, 0.019, 15)), -1).reshape(
+        -1, 2
+    )
     hole = hole[np.linalg.norm(hole, axis=1) < 0.019]
     near = np.concatenate([added[:, :2], pts[np.linalg.norm(pts[:, :2], axis=1) < 0.03, :2]])
     gap = np.min(np.linalg.norm(hole[:, None] - near[None], axis=-1), axis=1)
     assert gap.max() < 0.004  # every point of the hole is within a grid step of a new or a table Gaussian
     everywhere = knn_complete(world, spacing=0.004, covered_opacity=1.01)  # the old behaviour: all of it
-    r_all = np.linalg.norm(everywhere.background.means[bg.num:, :2], axis=1)
+    r_all = np.linalg.norm(everywhere.background.means[bg.num :, :2], axis=1)
     assert r_all.max() > 0.035 and len(r_all) > len(added)
 
 
@@ -475,7 +579,9 @@ def test_two_state_training_holds_out_views_only_when_the_capture_has_no_test_st
     assert default_holdout_every(tiny) == 0 and default_holdout_every(bare) == 8
 
     def held(capture, *extra):
-        return config_from_args(_parser().parse_args([str(capture), "--out", "w.dsgw", *extra])).base.holdout_every
+        return config_from_args(
+            _parser().parse_args([str(capture), "--out", "w.dsgworld", *extra])
+        ).base.holdout_every
 
     assert held(tiny) == 0 and held(bare) == 8  # without test states, every 8th view is kept to evaluate on
     assert held(bare, "--holdout-every", "0") == 0 and held(tiny, "--holdout-every", "4") == 4

@@ -3,12 +3,12 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
+from _worlds import HALF, two_box_world
 from gymnasium.utils.env_checker import check_env
 
 import dsg_gym  # noqa: F401  registers DSGWorld-v0
 from dsg_gym.envs.dsg_world import DSGWorldEnv
 from dsg_gym.poses import matrix_to_pose7
-from _worlds import HALF, two_box_world
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,9 @@ def _one_object_action(env, rng):
 
 
 def test_check_env_without_our_warnings():
-    env = gym.make("DSGWorld-v0", render_mode="rgb_array", width=64, height=64, render_width=96, render_height=80)
+    env = gym.make(
+        "DSGWorld-v0", render_mode="rgb_array", width=64, height=64, render_width=96, render_height=80
+    )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         check_env(env.unwrapped, skip_render_check=False)
@@ -180,10 +182,18 @@ def test_bad_input_is_a_value_error_and_changes_nothing(tmp_path):
     for path in (garbage, tmp_path / "missing.dsgworld"):
         with pytest.raises(ValueError, match=str(path.name)):
             gym.make("DSGWorld-v0", world=str(path))
-    for kw in ({"width": 0}, {"collision": "bounce"}, {"action_mode": "joint"}, {"render_mode": "human"},
-               {"max_translation": float("nan")}, {"cameras": [{"eye": [0, 0, 1]}]}, {"task": {"gap": -1}},
-               {"render_settings": {"alpha_min": 2.0}}, {"render_settings": {"tile": 8}},
-               {"render_settings": "fast"}):
+    for kw in (
+        {"width": 0},
+        {"collision": "bounce"},
+        {"action_mode": "joint"},
+        {"render_mode": "human"},
+        {"max_translation": float("nan")},
+        {"cameras": [{"eye": [0, 0, 1]}]},
+        {"task": {"gap": -1}},
+        {"render_settings": {"alpha_min": 2.0}},
+        {"render_settings": {"tile": 8}},
+        {"render_settings": "fast"},
+    ):
         with pytest.raises(ValueError):
             DSGWorldEnv(**kw)
 

@@ -45,7 +45,7 @@ def trained(tmp_path_factory):
         )
         == 0
     )
-    world = root / "w.dsgw"
+    world = root / "w.dsgworld"
     assert (
         cli.main(
             [
@@ -115,7 +115,7 @@ def test_metric_definitions():
 
 def test_bad_world_is_refused(trained, tmp_path, capsys):
     cap, world, _ = trained
-    bad = tmp_path / "bad.dsgw"
+    bad = tmp_path / "bad.dsgworld"
     bad.write_bytes(world.read_bytes()[:-10])
     assert eval_cli.main([str(bad), str(cap), "--out", str(tmp_path / "o")]) == 2
     assert "truncated" in capsys.readouterr().err
@@ -139,7 +139,7 @@ def test_default_views_follow_what_the_world_held_out(trained, tmp_path, monkeyp
 
 @pytest.mark.skipif(not LEGO.is_dir(), reason="shared NeRF-Blender lego data not present")
 def test_blender_world_evaluates_on_the_test_split(tmp_path):
-    world = tmp_path / "lego.dsgw"
+    world = tmp_path / "lego.dsgworld"
     assert (
         cli.main(
             [

@@ -155,10 +155,16 @@ def test_episode_file_errors(tmp_path, wm):
     np.savez(tmp_path / "pickled.npz", fps=10.0, poses=np.array([{"a": 1}], dtype=object))
     np.savez(tmp_path / "norigid.npz", fps=10.0, poses=ok.poses * 2)
     p.with_name("cut.npz").write_bytes(p.read_bytes()[:100])
-    cases = {"missing.npz": "does not exist", "junk.npz": "not a readable", "single.npy": "single array",
-             "nofps.npz": r"lacks \['fps'\]", "badshape.npz": "Episode.poses",
-             "pickled.npz": "not a readable",
-             "norigid.npz": "rigid", "cut.npz": "not a readable"}
+    cases = {
+        "missing.npz": "does not exist",
+        "junk.npz": "not a readable",
+        "single.npy": "single array",
+        "nofps.npz": r"lacks \['fps'\]",
+        "badshape.npz": "Episode.poses",
+        "pickled.npz": "not a readable",
+        "norigid.npz": "rigid",
+        "cut.npz": "not a readable",
+    }
     for name, pattern in cases.items():
         with pytest.raises(EpisodeFileError, match=pattern) as e:
             load_episode(tmp_path / name)
@@ -182,8 +188,10 @@ def test_cli_bad_inputs(tmp_path, capsys):
         ([tmp_path / "broken.dsgworld", "--out", out], "broken.dsgworld: cannot load world file"),
         ([WORLD, "--out", out, "--poses", tmp_path / "bad.npy"], r"bad.npy: poses: expected shape \(2, 7\)"),
         ([WORLD, "--out", out, "--poses", tmp_path / "bad.json"], "bad.json: cannot read poses"),
-        ([WORLD, "--out", out, "--poses", tmp_path / "missing.npz"],
-         "missing.npz: poses file does not exist"),
+        (
+            [WORLD, "--out", out, "--poses", tmp_path / "missing.npz"],
+            "missing.npz: poses file does not exist",
+        ),
         ([WORLD, "--out", tmp_path / "w.txt"], r"w.txt: a USD stage must end in .usdc"),
         ([WORLD, "--out", out, "--episode", tmp_path / "none.npz"], "none.npz: episode file does not exist"),
         ([WORLD, "--out", tmp_path / "d", "--ply", "--episode", tmp_path / "e.npz"], "--episode needs a USD"),

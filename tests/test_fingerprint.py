@@ -50,12 +50,13 @@ def test_fixed_episode_settle_is_bit_identical():
 
 
 def test_bundled_world_rewrites_byte_identical():
-    from dsg_gym.world import encode_world
-
-    from dsg_gym.world import load_world
+    from dsg_gym.world import encode_world, load_world
 
     data = DEFAULT_WORLD.read_bytes()
-    assert hashlib.sha256(encode_world(load_world(DEFAULT_WORLD))).hexdigest() == hashlib.sha256(data).hexdigest()
+    assert (
+        hashlib.sha256(encode_world(load_world(DEFAULT_WORLD))).hexdigest()
+        == hashlib.sha256(data).hexdigest()
+    )
 
 
 EXPECTED = {

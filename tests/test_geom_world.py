@@ -95,7 +95,9 @@ def test_splat_render_matches_mujoco(world):
                 union = np.sum((ids[v] == k) | (ref_ids == k))
                 if union:
                     ious.append(inter / union)
-    print(f"\nsplat vs MuJoCo PSNR per view (dB): {np.round(psnrs, 2).tolist()}, mask IoU min {min(ious):.3f}")
+    print(
+        f"\nsplat vs MuJoCo PSNR per view (dB): {np.round(psnrs, 2).tolist()}, mask IoU min {min(ious):.3f}"
+    )
     assert min(psnrs) >= PSNR_FLOOR_DB
     assert min(ious) >= 0.75  # measured 0.83-0.86: disc Gaussians overhang silhouettes by ~1 px
     assert alpha.min() > 0.95  # no holes

@@ -261,7 +261,6 @@ def test_look_at():
     assert Vb.shape == (6, 4, 4) and G.is_rigid(Vb, atol=1e-12).all()
 
 
-
 def test_look_at_and_intrinsics_agree_with_the_numpy_runtime_ones():
     """The torch look-at / intrinsics (training) and :mod:`dsg_gym.cameras` (runtime) are one convention."""
     import numpy as np
@@ -278,6 +277,7 @@ def test_look_at_and_intrinsics_agree_with_the_numpy_runtime_ones():
     for fovy, w, h in ((50.0, 64, 64), (60.0, 320, 240), (12.5, 33, 17)):
         K = G.intrinsics_from_fov(math.radians(fovy), w, h, dtype=F64).numpy()
         np.testing.assert_allclose(K, intrinsics_from_fov(fovy, w, h), rtol=1e-15, atol=0)
+
 
 def test_opengl_opencv_conversion():
     gen = torch.Generator().manual_seed(2)

@@ -34,9 +34,24 @@ def hand_written_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     n = len(means)
     rgb = np.tile(np.float32([0.1, 0.8, 0.2]), (n, 1))
     dc = (rgb - 0.5) / 0.28209479177387814
-    props = ["rot_0", "rot_1", "rot_2", "rot_3", "x", "y", "z", "extra", "f_dc_0", "f_dc_1", "f_dc_2",
-             "opacity", "scale_0", "scale_1", "scale_2"]
-    header = "ply\nformat binary_little_endian 1.0\ncomment hand-written\nelement vertex {}\n".format(n)
+    props = [
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+        "x",
+        "y",
+        "z",
+        "extra",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+    ]
+    header = f"ply\nformat binary_little_endian 1.0\ncomment hand-written\nelement vertex {n}\n"
     header += "".join(f"property float {p}\n" for p in props) + "end_header\n"
     body = b"".join(
         struct.pack("<15f", 1, 0, 0, 0, *means[i], 7.0, *dc[i], 3.0, *([np.log(0.005)] * 3)) for i in range(n)
@@ -61,8 +76,9 @@ def test_hand_written_ply_as_object_in_default_world(tmp_path, capsys):
     np.testing.assert_array_equal(g.means, means)
     np.testing.assert_allclose(g.colors, rgb, atol=1e-6)
     out = tmp_path / "with_cube.dsgworld"
-    code, stdout, err = run_cli([ply, "--out", out, "--as", "object", "--object-name", "green_cube",
-                                 "--base", DEFAULT_WORLD], capsys)
+    code, stdout, err = run_cli(
+        [ply, "--out", out, "--as", "object", "--object-name", "green_cube", "--base", DEFAULT_WORLD], capsys
+    )
     assert code == 0, err
     base = WorldModel.load(DEFAULT_WORLD)
     wm = WorldModel.load(out)
@@ -85,16 +101,29 @@ def test_hand_written_ply_as_object_in_default_world(tmp_path, capsys):
         assert np.isfinite(reward)
     env.close()
     # the same name again is refused
-    code, _, err = run_cli([ply, "--out", tmp_path / "x.dsgworld", "--as", "object", "--object-name",
-                            "green_cube", "--base", out], capsys)
+    code, _, err = run_cli(
+        [
+            ply,
+            "--out",
+            tmp_path / "x.dsgworld",
+            "--as",
+            "object",
+            "--object-name",
+            "green_cube",
+            "--base",
+            out,
+        ],
+        capsys,
+    )
     assert code == 2 and "already has an object named 'green_cube'" in err
 
 
 def test_object_without_base_makes_an_env_world(tmp_path):
     ply = tmp_path / "cube.ply"
     hand_written_ply(ply)
-    out = write_world(tmp_path / "cube.dsgworld", world_from_ply(ply, role="object", num_views=4, width=32,
-                                                                  height=32))
+    out = write_world(
+        tmp_path / "cube.dsgworld", world_from_ply(ply, role="object", num_views=4, width=32, height=32)
+    )
     env = gym.make("DSGWorld-v0", world=str(out), width=32, height=32)
     obs, _ = env.reset(seed=0)
     obs, *_ = env.step(env.action_space.sample())
@@ -138,8 +167,9 @@ def test_real_ply_as_background_renders(tmp_path, capsys):
         gym.make("DSGWorld-v0", world=str(out))
     # imported splats keep their stored encodings: exporting them again rewrites the source file byte for byte
     # (the source has zero normals and no comments)
-    wm = WorldModel.from_world(load_world(write_world(tmp_path / "sw.dsgworld",
-                                                      world_from_ply(REAL_PLY, DEFAULT_WORLD))))
+    wm = WorldModel.from_world(
+        load_world(write_world(tmp_path / "sw.dsgworld", world_from_ply(REAL_PLY, DEFAULT_WORLD)))
+    )
     assert export_world_ply(wm, tmp_path / "ply")[0].read_bytes() == REAL_PLY.read_bytes()
 
 

@@ -14,9 +14,9 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from train_world.cli import importer as importer_cli  # noqa: E402
 from train_world.capture import CaptureError, load_capture  # noqa: E402
 from train_world.capture.importers import import_llff, import_transforms, llff_to_opengl_c2w  # noqa: E402
+from train_world.cli import importer as importer_cli  # noqa: E402
 from train_world.synth.generate import GenerateConfig, generate_scene  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "external"
@@ -160,7 +160,9 @@ def test_llff_missing_poses(tmp_path):
 
 def test_import_transforms(synth, tmp_path):
     out = tmp_path / "t"
-    assert importer_cli.main(["transforms", str(synth / "state1"), "--out", str(out), "--threshold", "0"]) == 0
+    assert (
+        importer_cli.main(["transforms", str(synth / "state1"), "--out", str(out), "--threshold", "0"]) == 0
+    )
     got = load_capture(out).states["state1"]
     want = load_capture(synth, states=["state1"]).states["state1"]
     np.testing.assert_allclose(got.viewmats.numpy(), want.viewmats.numpy(), atol=1e-6)

@@ -59,7 +59,7 @@ def test_no_import_circles(graph):
         seen[m] = 1
         for t in sorted(graph[m]):
             if seen.get(t) == 1:
-                cycles.append(stack[stack.index(t):] + [t])
+                cycles.append(stack[stack.index(t) :] + [t])
             elif t not in seen:
                 visit(t, stack + [t])
         seen[m] = 2
@@ -71,7 +71,11 @@ def test_no_import_circles(graph):
 
 
 def test_runtime_never_imports_training_or_benchmarks(graph):
-    bad = {m: sorted(t for t in ts if not t.startswith("dsg_gym")) for m, ts in graph.items() if m.startswith("dsg_gym")}
+    bad = {
+        m: sorted(t for t in ts if not t.startswith("dsg_gym"))
+        for m, ts in graph.items()
+        if m.startswith("dsg_gym")
+    }
     assert not {m: ts for m, ts in bad.items() if ts}
 
 

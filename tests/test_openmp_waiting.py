@@ -40,8 +40,7 @@ def test_busy_cores_of_others_subtracts_own_time():
 
 def test_default_torch_pool_spins_numba_pool_sleeps_and_environment_is_restored():
     code = (
-        "import os, train_world\n"
-        "print(os.environ.get('OMP_WAIT_POLICY'), '|', train_world._openmp.waiting())"
+        "import os, train_world\nprint(os.environ.get('OMP_WAIT_POLICY'), '|', train_world._openmp.waiting())"
     )
     out, spins = _run(code)
     policy, what = out.split(" | ")

@@ -67,10 +67,15 @@ def test_recommend_tie_in_time_prefers_accuracy():
 
 
 def test_combined_points_take_the_cheapest_value_within_tolerance():
-    pts = [C.Point("default", "default"), C.Point("a2", "alpha_min", alpha_min=2 / 255),
-           C.Point("a8", "alpha_min", alpha_min=8 / 255), C.Point("t3", "t_min", t_min=1e-3),
-           C.Point("t5", "t_min", t_min=1e-5), C.Point("sh0", "sh_degree", sh_degree=0),
-           C.Point("sh2", "sh_degree", sh_degree=2)]
+    pts = [
+        C.Point("default", "default"),
+        C.Point("a2", "alpha_min", alpha_min=2 / 255),
+        C.Point("a8", "alpha_min", alpha_min=8 / 255),
+        C.Point("t3", "t_min", t_min=1e-3),
+        C.Point("t5", "t_min", t_min=1e-5),
+        C.Point("sh0", "sh_degree", sh_degree=0),
+        C.Point("sh2", "sh_degree", sh_degree=2),
+    ]
     psnr = {"default": 27.0, "a2": 26.95, "a8": 26.5, "t3": 27.01, "t5": 27.0, "sh0": 26.6, "sh2": 26.99}
     c01, c05 = C.combined_points(pts, psnr)
     assert (c01.alpha_min, c01.t_min, c01.sh_degree) == (2 / 255, 1e-3, 2)
@@ -131,8 +136,13 @@ def test_budget_pruning_keeps_the_most_important_gaussians():
     w = two_box_world()
     bg = w.background
     # one Gaussian that shows nowhere (almost transparent): the least important
-    ghost = GaussianSet.from_rgb(np.array([[0.0, 0.0, 0.001]]), np.array([[1.0, 0, 0, 0]]),
-                                 np.full((1, 3), 0.007), np.array([0.001]), np.array([[0.9, 0.9, 0.9]]))
+    ghost = GaussianSet.from_rgb(
+        np.array([[0.0, 0.0, 0.001]]),
+        np.array([[1.0, 0, 0, 0]]),
+        np.full((1, 3), 0.007),
+        np.array([0.001]),
+        np.array([[0.9, 0.9, 0.9]]),
+    )
     w = __import__("dataclasses").replace(w, background=GaussianSet.concat([bg, ghost]))
     scores = C.importance_scores(w, object_views=8, rings=1, per_ring=6)
     n = w.background.num
@@ -159,7 +169,9 @@ def test_area_downsample_and_classes():
     img = np.arange(16, dtype=np.float32).reshape(4, 4)
     np.testing.assert_allclose(C.area_downsample(img, 2, 2), [[2.5, 4.5], [10.5, 12.5]])
     rgb = np.random.default_rng(0).random((6, 6, 3)).astype(np.float32)
-    np.testing.assert_allclose(C.area_downsample(rgb, 3, 3), rgb.reshape(3, 2, 3, 2, 3).mean((1, 3)), atol=1e-6)
+    np.testing.assert_allclose(
+        C.area_downsample(rgb, 3, 3), rgb.reshape(3, 2, 3, 2, 3).mean((1, 3)), atol=1e-6
+    )
     cls = np.array([[0, 1, 2, 2], [1, 1, 2, 0], [0, 0, 0, 0], [0, 2, 0, 0]], np.uint8)
     np.testing.assert_array_equal(C.downsample_classes(cls, 3, 2, 2), [[1, 2], [0, 0]])
 
@@ -169,8 +181,16 @@ def _self_test_states(w) -> C.TestStates:
     cams = w.cameras
     r = SceneRenderer(w.background, list(w.objects), cams.viewmats, cams.Ks, cams.width, cams.height)
     out = r.render(w.states["state2"], rgb=True, mask=True, incremental=False)
-    return C.TestStates("self", {"s": out.rgb.astype(np.float32) / 255}, {"s": out.mask}, {"s": w.states["state2"]},
-                        cams.viewmats, cams.Ks, cams.width, cams.height)
+    return C.TestStates(
+        "self",
+        {"s": out.rgb.astype(np.float32) / 255},
+        {"s": out.mask},
+        {"s": w.states["state2"]},
+        cams.viewmats,
+        cams.Ks,
+        cams.width,
+        cams.height,
+    )
 
 
 def test_render_error_against_own_render():
@@ -194,22 +214,34 @@ def test_eval_times():
 
 # ---------------------------------------------------------------------------------------------- end to end
 def test_quick_run_writes_json_markdown_and_png(tmp_path):
+    pytest.importorskip("matplotlib", reason="the plots need the bench extra (pip install -e .[bench])")
     out = tmp_path / "p"
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_THREADING_LAYER"}
-    r = subprocess.run([sys.executable, "-m", "benchmarks.pareto", "--out", str(out), "--quick", "--training"],
-                       check=False, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks.pareto", "--out", str(out), "--quick", "--training"],
+        check=False,
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     res = json.loads((out / "pareto.json").read_text())
     rows = res["bundled"]["points"]
     assert rows[0]["name"] == "default" and len(rows) >= 6
     for row in rows:
-        assert row["step_ms"] > 0 and 10 < row["psnr"] < 60 and 0 < row["ssim"] <= 1 and 0 < row["mask_iou"] <= 1
+        assert (
+            row["step_ms"] > 0 and 10 < row["psnr"] < 60 and 0 < row["ssim"] <= 1 and 0 < row["mask_iou"] <= 1
+        )
     # the front is consistent with the rows
     flags = C.pareto_front([q["step_ms"] for q in rows], [q["psnr"] for q in rows])
     assert [q["name"] for q, f in zip(rows, flags) if f] == res["bundled"]["front"]
     rec = res["recommended"]
     cand = [q for q in rows if q["env_settable"] and q["size"] == 128]
-    front = [q for q, f in zip(cand, C.pareto_front([q["step_ms"] for q in cand], [q["psnr"] for q in cand])) if f]
+    front = [
+        q for q, f in zip(cand, C.pareto_front([q["step_ms"] for q in cand], [q["psnr"] for q in cand])) if f
+    ]
     assert rec["name"] in [q["name"] for q in front] and rec["size"] == 128
     C.RenderSettings(**rec["render_settings"])  # a valid env setting
     best = max(q["psnr"] for q in cand)
@@ -238,8 +270,13 @@ def test_world_generator_settings_read_the_generator_or_fall_back_to_older_ones(
         return SimpleNamespace(metadata=meta)
 
     assert settings(world({"source": {"generator": {"lighting": "soft", "supersample": 4}}})) == {
-        "lighting": "soft", "supersample": 4}
+        "lighting": "soft",
+        "supersample": 4,
+    }
     # generator 1.1 recorded its lighting but no supersampling: one point sample per pixel
-    assert settings(world({"source": {"generator": {"lighting": "soft"}}})) == {"lighting": "soft", "supersample": 1}
+    assert settings(world({"source": {"generator": {"lighting": "soft"}}})) == {
+        "lighting": "soft",
+        "supersample": 1,
+    }
     assert settings(world({"source": {"kind": "capture"}})) == {"lighting": "spot", "supersample": 1}
     assert settings(world({})) == {"lighting": "spot", "supersample": 1}

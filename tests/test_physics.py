@@ -1,11 +1,10 @@
 import numpy as np
 import pytest
+from _worlds import HALF, two_box_world
 
 from dsg_gym.physics import TABLE, PhysicsProxy
 from dsg_gym.poses import matrix_to_pose7
 from dsg_gym.world_model import WorldModel
-
-from _worlds import HALF, two_box_world
 
 
 @pytest.fixture(scope="module")
@@ -97,8 +96,10 @@ def test_hulls_of_resting_objects_are_lifted_out_of_the_table():
     p = PhysicsProxy(w2)
     for name, poses in w2.states.items():
         assert p.check(poses).ok, name
-    low = min((p.hull_world(0, matrix_to_pose7(P[0]))[:, 2].min() for P in w2.states.values()))
+    low = min(p.hull_world(0, matrix_to_pose7(P[0]))[:, 2].min() for P in w2.states.values())
     assert low == pytest.approx(w2.table.z, abs=1e-9)
     # without lifting (tolerance 0) the sunk box penetrates the table by about 6 mm
     r = PhysicsProxy(w2, rest_tolerance=0.0).check(w2.states["state1"])
-    assert (0, TABLE) in r.penetrating and r.depths[r.penetrating.index((0, TABLE))] == pytest.approx(0.006, abs=1e-3)
+    assert (0, TABLE) in r.penetrating and r.depths[r.penetrating.index((0, TABLE))] == pytest.approx(
+        0.006, abs=1e-3
+    )

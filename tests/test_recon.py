@@ -7,8 +7,8 @@ import json
 import math
 
 import pytest
-from _captures import tiny_capture
 import torch
+from _captures import tiny_capture
 
 from dsg_gym.world import encode_world, load_world
 from train_world.cli import train as cli
@@ -220,7 +220,7 @@ def test_cli_help_and_quick_run(tiny, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["--help"])
     assert e.value.code == 0 and "--preset" in capsys.readouterr().out
-    out = tmp_path / "w.dsgw"
+    out = tmp_path / "w.dsgworld"
     rc = cli.main(
         [str(tiny), "--out", str(out), "--preset", "quick", "--iterations", "20", "--single-state", "--quiet"]
     )
@@ -233,7 +233,7 @@ def test_cli_help_and_quick_run(tiny, tmp_path, capsys):
     assert gen["supersample"] == json.loads((tiny / "scene.json").read_text())["generator"]["supersample"]
     n = w.background.num + sum(o.gaussians.num for o in w.objects.values())
     assert n == w.metadata["num_gaussians"]
-    assert (tmp_path / "w.dsgw.ckpt").exists()
+    assert (tmp_path / "w.dsgworld.ckpt").exists()
     # (without --single-state, dsg-train hands two-state captures to train_world.dual_state; not exercised here)
     bad = tmp_path / "nothing"
     bad.mkdir()

@@ -19,9 +19,26 @@ from train_world.eval.evaluate import render_gaussians
 def unrefined(tmp_path_factory):
     d = tmp_path_factory.mktemp("refine")
     cap = tiny_capture(d / "cap", test_views=2, test_states=1)
-    out = d / "w.dsgw"
-    assert dual_cli.main_two_state([str(cap), "--out", str(out), "--preset", "quick", "--iterations", "60",
-                          "--prune-every", "10", "--refine-steps", "0", "--quiet"]) == 0
+    out = d / "w.dsgworld"
+    assert (
+        dual_cli.main_two_state(
+            [
+                str(cap),
+                "--out",
+                str(out),
+                "--preset",
+                "quick",
+                "--iterations",
+                "60",
+                "--prune-every",
+                "10",
+                "--refine-steps",
+                "0",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return cap, out
 
 
@@ -39,8 +56,16 @@ def _train_error(world, views) -> dict[str, float]:
 
 def _arrays(world):
     parts = [world.background] + [world.objects[i].gaussians for i in world.object_ids]
-    return [np.concatenate([getattr(p, k).reshape(p.num, -1) for k in ("means", "quats", "scales", "opacities", "sh",
-                                                                      "features")], 1) for p in parts]
+    return [
+        np.concatenate(
+            [
+                getattr(p, k).reshape(p.num, -1)
+                for k in ("means", "quats", "scales", "opacities", "sh", "features")
+            ],
+            1,
+        )
+        for p in parts
+    ]
 
 
 def test_refinement_fits_both_states_and_keeps_the_world_s_structure(unrefined):
@@ -56,13 +81,22 @@ def test_refinement_fits_both_states_and_keeps_the_world_s_structure(unrefined):
     assert all(np.array_equal(a, b) for a, b in zip(before, _arrays(world)))  # the input world is untouched
     e0, e1 = _train_error(world, views), _train_error(refined, views)
     assert all(e1[s] < 0.9 * e0[s] for s in e0), (e0, e1)  # both states' views fit better
-    assert info["steps"] == 60 and info["loss_last"] < info["loss_first"] and info["states"] == ["state1", "state2"]
-    assert refined.metadata["refine"] == {k: v for k, v in info.items() if k != "seconds"} and info["seconds"] > 0
+    assert (
+        info["steps"] == 60
+        and info["loss_last"] < info["loss_first"]
+        and info["states"] == ["state1", "state2"]
+    )
+    assert (
+        refined.metadata["refine"] == {k: v for k, v in info.items() if k != "seconds"}
+        and info["seconds"] > 0
+    )
     # what refinement must not touch: counts, identity features, labels, poses, cameras, classifier
     assert refined.background.num == world.background.num
     for i in world.object_ids:
         a, b = world.objects[i].gaussians, refined.objects[i].gaussians
-        assert b.num == a.num and np.array_equal(b.features, a.features) and np.array_equal(b.labels, a.labels)
+        assert (
+            b.num == a.num and np.array_equal(b.features, a.features) and np.array_equal(b.labels, a.labels)
+        )
         # still in the object's own frame: centres move by millimetres, not by the object's pose
         assert np.abs(b.means - a.means).max() < 0.02
         assert np.allclose(np.linalg.norm(b.quats, axis=1), 1.0, atol=1e-5)
@@ -83,10 +117,14 @@ def test_refinement_rejects_bad_input_and_leaves_the_world_alone(unrefined):
     bad = views["state2"].images.clone()
     bad[0, 1, 2, 0] = float("nan")
     with pytest.raises(ValueError, match="state 'state2': images have NaN"):
-        refine_world(world, {**views, "state2": StateViews(bad, views["state2"].viewmats, views["state2"].Ks)})
+        refine_world(
+            world, {**views, "state2": StateViews(bad, views["state2"].viewmats, views["state2"].Ks)}
+        )
     with pytest.raises(ValueError, match="viewmats"):
-        refine_world(world, {"state1": StateViews(views["state1"].images, views["state1"].viewmats[:2],
-                                                  views["state1"].Ks)})
+        refine_world(
+            world,
+            {"state1": StateViews(views["state1"].images, views["state1"].viewmats[:2], views["state1"].Ks)},
+        )
     with pytest.raises(ValueError, match="no training views"):
         refine_world(world, {})
     with pytest.raises(ValueError, match="steps must be an integer >= 0"):
@@ -99,39 +137,75 @@ def test_refinement_rejects_bad_input_and_leaves_the_world_alone(unrefined):
 def test_dsg_train_refines_like_the_standalone_command(unrefined, tmp_path, capsys):
     cap, path = unrefined
     # dsg-train with refinement = the same training without it, then `python -m train_world.cli.refine`
-    inproc = tmp_path / "in.dsgw"
-    assert dual_cli.main_two_state([str(cap), "--out", str(inproc), "--preset", "quick", "--iterations", "60",
-                          "--prune-every", "10", "--refine-steps", "25", "--quiet"]) == 0
+    inproc = tmp_path / "in.dsgworld"
+    assert (
+        dual_cli.main_two_state(
+            [
+                str(cap),
+                "--out",
+                str(inproc),
+                "--preset",
+                "quick",
+                "--iterations",
+                "60",
+                "--prune-every",
+                "10",
+                "--refine-steps",
+                "25",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["refine_steps"] == 25 and summary["refine_seconds"] > 0
-    after = tmp_path / "after.dsgw"
+    after = tmp_path / "after.dsgworld"
     assert refine_main([str(path), str(cap), "--out", str(after), "--steps", "25", "--quiet"]) == 0
     a, b = load_world(inproc), load_world(after)
     assert all(np.array_equal(x, y) for x, y in zip(_arrays(a), _arrays(b)))
     assert a.metadata["refine"]["steps"] == b.metadata["refine"]["steps"] == 25
     # a refined world is not refined twice; a single-state world is refused with the reason
-    assert refine_main([str(after), str(cap), "--out", str(tmp_path / "x.dsgw"), "--quiet"]) == 2
+    assert refine_main([str(after), str(cap), "--out", str(tmp_path / "x.dsgworld"), "--quiet"]) == 2
     assert "refined already" in capsys.readouterr().err
-    single = tmp_path / "single.dsgw"
+    single = tmp_path / "single.dsgworld"
     from train_world.suite.baselines import train_single_state
 
     train_single_state(cap, single, preset="quick", iterations=20)
-    assert refine_main([str(single), str(cap), "--out", str(tmp_path / "x.dsgw"), "--quiet"]) == 2
+    assert refine_main([str(single), str(cap), "--out", str(tmp_path / "x.dsgworld"), "--quiet"]) == 2
     assert "not a two-state world" in capsys.readouterr().err
-    assert not (tmp_path / "x.dsgw").exists()
+    assert not (tmp_path / "x.dsgworld").exists()
 
 
 def test_refinement_steps_do_not_block_resuming_or_branching(unrefined, tmp_path):
     cap, _ = unrefined
     ck = tmp_path / "recon.ckpt"
     common = [str(cap), "--preset", "quick", "--iterations", "60", "--prune-every", "10", "--quiet"]
-    assert dual_cli.main_two_state([*common, "--out", str(tmp_path / "r.dsgw"), "--stop-at-joint", "--checkpoint", str(ck),
-                          "--refine-steps", "0"]) == 0
+    assert (
+        dual_cli.main_two_state(
+            [
+                *common,
+                "--out",
+                str(tmp_path / "r.dsgworld"),
+                "--stop-at-joint",
+                "--checkpoint",
+                str(ck),
+                "--refine-steps",
+                "0",
+            ]
+        )
+        == 0
+    )
     # the checkpoint was made by a run that would not refine; a refining run still branches from it
-    assert dual_cli.main_two_state([*common, "--out", str(tmp_path / "b.dsgw"), "--branch-from", str(ck),
-                          "--refine-steps", "5"]) == 0
-    assert load_world(tmp_path / "b.dsgw").metadata["refine"]["steps"] == 5
-    assert dual_cli.main_two_state([*common, "--out", str(tmp_path / "c.dsgw"), "--refine-steps", "-3"]) == 2
+    assert (
+        dual_cli.main_two_state(
+            [*common, "--out", str(tmp_path / "b.dsgworld"), "--branch-from", str(ck), "--refine-steps", "5"]
+        )
+        == 0
+    )
+    assert load_world(tmp_path / "b.dsgworld").metadata["refine"]["steps"] == 5
+    assert (
+        dual_cli.main_two_state([*common, "--out", str(tmp_path / "c.dsgworld"), "--refine-steps", "-3"]) == 2
+    )
 
 
 def test_presets_refine_by_default_except_the_paper_s():

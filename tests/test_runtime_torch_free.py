@@ -21,7 +21,8 @@ def test_env_runs_without_importing_torch():
         assert obs["rgb"].shape == (32, 32, 3)
         print("torch" in sys.modules)
     """
-    res = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
-                         timeout=600)
+    res = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=600
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip() == "False", "DSGWorld-v0 imported torch"

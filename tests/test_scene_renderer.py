@@ -18,7 +18,8 @@ def _gset(rng, n, spread, deg=1, s=0.01, centre=(0.0, 0.0, 0.0)):
         quats=rng.normal(size=(n, 4)).astype(np.float32),
         scales=np.exp(rng.uniform(np.log(s), np.log(3 * s), (n, 3))).astype(np.float32),
         opacities=rng.uniform(0.2, 0.95, n).astype(np.float32),
-        sh=rng.normal(0, 0.3, (n, (deg + 1) ** 2, 3)).astype(np.float32))
+        sh=rng.normal(0, 0.3, (n, (deg + 1) ** 2, 3)).astype(np.float32),
+    )
 
 
 def _pose(x, y, yaw, z=0.05):
@@ -50,15 +51,28 @@ def _compose_and_rasterize(sr, bg, vm, K, W, H, mode="classic", eps2d=0.3):
     op = np.concatenate([bg.opacities, sr._obj_opac])
     bg_colors = sr._colors(st["layout"], sr._bg_rgb, np.zeros(bg.num, np.int64), sr._bg.depths)
     cols = np.concatenate([bg_colors, st["colors"]], axis=1)
-    out, alpha, _ = rasterize(t(means), t(quats), t(scales), t(op), t(cols), t(vm.astype(np.float32)),
-                              t(K.astype(np.float32)), W, H, rasterize_mode=mode, eps2d=eps2d)
+    out, alpha, _ = rasterize(
+        t(means),
+        t(quats),
+        t(scales),
+        t(op),
+        t(cols),
+        t(vm.astype(np.float32)),
+        t(K.astype(np.float32)),
+        W,
+        H,
+        rasterize_mode=mode,
+        eps2d=eps2d,
+    )
     return out.numpy(), alpha[..., 0].numpy()
 
 
 @pytest.mark.parametrize("mode,eps2d", [("classic", 0.3), ("antialiased", 0.3), ("antialiased", 0.1)])
 def test_incremental_equals_full_and_rasterize(setup, mode, eps2d):
     bg, objs, vm, K, W, H = setup
-    sr = SceneRenderer(bg, objs, vm, K, W, H, background_color=(0.1, 0.2, 0.3), rasterize_mode=mode, eps2d=eps2d)
+    sr = SceneRenderer(
+        bg, objs, vm, K, W, H, background_color=(0.1, 0.2, 0.3), rasterize_mode=mode, eps2d=eps2d
+    )
     rng = np.random.default_rng(1)
     poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
     sr.render(poses, depth=True)
@@ -80,7 +94,9 @@ def test_incremental_equals_full_and_rasterize(setup, mode, eps2d):
     assert np.array_equal(out_r, sr.buffers()[0])
     assert np.array_equal(alpha_r, 1.0 - sr.buffers()[1])
     if mode == "antialiased":  # the filter really acted: not the classic image
-        classic = SceneRenderer(bg, objs, vm, K, W, H, background_color=(0.1, 0.2, 0.3)).render(poses, depth=True)
+        classic = SceneRenderer(bg, objs, vm, K, W, H, background_color=(0.1, 0.2, 0.3)).render(
+            poses, depth=True
+        )
         assert np.abs(classic.alpha - inc.alpha).max() > 0.01
 
 
@@ -95,11 +111,15 @@ def test_unknown_rasterize_mode_rejected(setup):
 def test_single_threaded_kernels_render_the_same_bits(setup):
     """``parallel=False`` (vector-env workers) and the threaded kernels give identical images, step by step."""
     bg, objs, vm, K, W, H = setup
-    rs = [SceneRenderer(bg, objs, vm, K, W, H, rasterize_mode="antialiased", parallel=p) for p in (True, False)]
+    rs = [
+        SceneRenderer(bg, objs, vm, K, W, H, rasterize_mode="antialiased", parallel=p) for p in (True, False)
+    ]
     poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
     rng = np.random.default_rng(5)
     for step in range(6):
-        poses[step % 3] = poses[step % 3] @ _pose(rng.normal(0, 0.03), rng.normal(0, 0.03), rng.normal(0, 0.3))
+        poses[step % 3] = poses[step % 3] @ _pose(
+            rng.normal(0, 0.03), rng.normal(0, 0.03), rng.normal(0, 0.3)
+        )
         a, b = (r.render(poses, depth=True) for r in rs)
         for name in ("rgb", "mask", "depth", "alpha"):
             assert np.array_equal(getattr(a, name), getattr(b, name)), (step, name)
@@ -138,8 +158,10 @@ def test_plan_tiles_gives_every_tile_to_one_thread_longest_first():
         order, starts = incr.plan_tiles(tiles, a_off, b_off, use_cache, P)
         assert sorted(order) == sorted(tiles) and starts[0] == 0 and starts[-1] == tiles.size
         assert len(starts) == min(P, tiles.size) + 1
-        cost = {int(t): b_off[t + 1] - b_off[t] + (40 if use_cache else a_off[t + 1] - a_off[t]) for t in tiles}
-        loads = [sum(cost[int(t)] for t in order[starts[k]:starts[k + 1]]) for k in range(len(starts) - 1)]
+        cost = {
+            int(t): b_off[t + 1] - b_off[t] + (40 if use_cache else a_off[t + 1] - a_off[t]) for t in tiles
+        }
+        loads = [sum(cost[int(t)] for t in order[starts[k] : starts[k + 1]]) for k in range(len(starts) - 1)]
         # longest-processing-time: no thread ends more than one tile's cost after the least loaded one
         assert max(loads) - min(loads) <= max(cost.values())
 
@@ -203,15 +225,27 @@ def test_scene_renderer_colours_match_moved_gaussians_with_rotated_sh(setup):
     for k, g in enumerate(objs):
         moved = transform_gaussians(g, matrix_to_pose7(poses[k]))
         deg = int(np.sqrt(g.sh.shape[1])) - 1
-        want = torch.clamp_min(spherical_harmonics(
-            deg, torch.from_numpy(moved.means.astype(np.float64) - campos), torch.from_numpy(moved.sh.astype(np.float64))
-        ) + 0.5, 0.0).numpy()
-        got = st["colors"][0, start:start + g.num, :3]
+        want = torch.clamp_min(
+            spherical_harmonics(
+                deg,
+                torch.from_numpy(moved.means.astype(np.float64) - campos),
+                torch.from_numpy(moved.sh.astype(np.float64)),
+            )
+            + 0.5,
+            0.0,
+        ).numpy()
+        got = st["colors"][0, start : start + g.num, :3]
         assert np.allclose(got, want, atol=2e-5), (k, np.abs(got - want).max())
         if deg > 0:  # without the SH rotation the colours would differ
-            plain = torch.clamp_min(spherical_harmonics(
-                deg, torch.from_numpy(moved.means.astype(np.float64) - campos), torch.from_numpy(g.sh.astype(np.float64))
-            ) + 0.5, 0.0).numpy()
+            plain = torch.clamp_min(
+                spherical_harmonics(
+                    deg,
+                    torch.from_numpy(moved.means.astype(np.float64) - campos),
+                    torch.from_numpy(g.sh.astype(np.float64)),
+                )
+                + 0.5,
+                0.0,
+            ).numpy()
             assert np.abs(got - plain).max() > 1e-2
         start += g.num
 
@@ -225,7 +259,9 @@ def test_render_settings_defaults_and_incremental_exactness(setup):
     bg, objs, vm, K, W, H = setup
     poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
     ref = SceneRenderer(bg, objs, vm, K, W, H).render(poses, depth=True)
-    same = SceneRenderer(bg, objs, vm, K, W, H, **RenderSettings(raster.ALPHA_MIN, raster.T_MIN).kwargs()).render(poses, depth=True)
+    same = SceneRenderer(
+        bg, objs, vm, K, W, H, **RenderSettings(raster.ALPHA_MIN, raster.T_MIN).kwargs()
+    ).render(poses, depth=True)
     assert np.array_equal(ref.rgb, same.rgb) and np.array_equal(ref.alpha, same.alpha)
     env_default = SceneRenderer(bg, objs, vm, K, W, H, **RenderSettings().kwargs()).render(poses, depth=True)
     d = np.abs(env_default.rgb.astype(int) - ref.rgb.astype(int))
@@ -248,22 +284,29 @@ def test_alpha_min_and_t_min_take_effect():
     W = H = 32
     vm = np.eye(4)[None]
     K = np.array([[[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]]])
-    one = GaussianSet(means=np.array([[0.0, 0.0, 1.0]], np.float32), quats=np.array([[1.0, 0, 0, 0]], np.float32),
-                      scales=np.full((1, 3), 0.1, np.float32), opacities=np.array([0.9], np.float32),
-                      sh=np.zeros((1, 1, 3), np.float32))
+    one = GaussianSet(
+        means=np.array([[0.0, 0.0, 1.0]], np.float32),
+        quats=np.array([[1.0, 0, 0, 0]], np.float32),
+        scales=np.full((1, 3), 0.1, np.float32),
+        opacities=np.array([0.9], np.float32),
+        sh=np.zeros((1, 1, 3), np.float32),
+    )
     a_def = SceneRenderer(one, [], vm, K, W, H).render(np.zeros((0, 4, 4))).alpha
     a_cut = SceneRenderer(one, [], vm, K, W, H, alpha_min=0.1).render(np.zeros((0, 4, 4))).alpha
     assert 0 < a_def[a_def > 0].min() < 0.05
     assert a_cut[a_cut > 0].min() >= 0.1 - 1e-6
     assert (a_cut > 0).sum() < (a_def > 0).sum()
     n = 6
-    stack = GaussianSet(means=np.array([[0.0, 0.0, 1.0 + 0.1 * i] for i in range(n)], np.float32),
-                        quats=np.tile(np.array([[1.0, 0, 0, 0]], np.float32), (n, 1)),
-                        scales=np.full((n, 3), 1.0, np.float32), opacities=np.full(n, 0.6, np.float32),
-                        sh=np.zeros((n, 1, 3), np.float32))
+    stack = GaussianSet(
+        means=np.array([[0.0, 0.0, 1.0 + 0.1 * i] for i in range(n)], np.float32),
+        quats=np.tile(np.array([[1.0, 0, 0, 0]], np.float32), (n, 1)),
+        scales=np.full((n, 3), 1.0, np.float32),
+        opacities=np.full(n, 0.6, np.float32),
+        sh=np.zeros((n, 1, 3), np.float32),
+    )
     for t_min in (1e-4, 0.05, 0.3):
         a = SceneRenderer(stack, [], vm, K, W, H, t_min=t_min).render(np.zeros((0, 4, 4))).alpha
-        assert a.max() <= 1.0 - t_min + 1e-6 and a.max() > 1.0 - 2.5 * t_min - 0.4 ** n
+        assert a.max() <= 1.0 - t_min + 1e-6 and a.max() > 1.0 - 2.5 * t_min - 0.4**n
 
 
 def test_sh_degree_cap_equals_truncated_world(setup):
@@ -272,7 +315,9 @@ def test_sh_degree_cap_equals_truncated_world(setup):
     capped = SceneRenderer(bg, objs, vm, K, W, H, sh_degree=0).render(poses)
 
     def dc(g):
-        return GaussianSet(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, sh=g.sh[:, :1])
+        return GaussianSet(
+            means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, sh=g.sh[:, :1]
+        )
 
     trunc = SceneRenderer(dc(bg), [dc(o) for o in objs], vm, K, W, H).render(poses)
     full = SceneRenderer(bg, objs, vm, K, W, H).render(poses)
@@ -280,9 +325,17 @@ def test_sh_degree_cap_equals_truncated_world(setup):
     assert not np.array_equal(capped.rgb, full.rgb)
 
 
-@pytest.mark.parametrize("kw, msg", [({"alpha_min": 0.0}, "alpha_min"), ({"alpha_min": 1.0}, "alpha_min"),
-                                     ({"t_min": -0.1}, "t_min"), ({"t_min": float("nan")}, "t_min"),
-                                     ({"sh_degree": 4}, "sh_degree"), ({"sh_degree": 1.5}, "sh_degree")])
+@pytest.mark.parametrize(
+    "kw, msg",
+    [
+        ({"alpha_min": 0.0}, "alpha_min"),
+        ({"alpha_min": 1.0}, "alpha_min"),
+        ({"t_min": -0.1}, "t_min"),
+        ({"t_min": float("nan")}, "t_min"),
+        ({"sh_degree": 4}, "sh_degree"),
+        ({"sh_degree": 1.5}, "sh_degree"),
+    ],
+)
 def test_bad_render_settings_rejected(setup, kw, msg):
     from dsg_gym.scene_renderer import RenderSettings
 
@@ -311,9 +364,11 @@ def test_pose7_and_matrix_poses_render_alike(setup):
     assert np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max() <= 1 and np.array_equal(a.mask, b.mask)
     assert np.abs(a.rgb.astype(int) - c.rgb.astype(int)).max() <= 1
     sr = SceneRenderer(bg, objs, vm, K, W, H)
-    for bad, msg in ((np.where(np.arange(7) == 4, np.nan, p7), "object 0"),
-                     (np.concatenate([p7[:2], [[0, 0, 0, 0, 0, 0, 0]]]), "object 2"),
-                     (p7[:, :6], "shape")):
+    for bad, msg in (
+        (np.where(np.arange(7) == 4, np.nan, p7), "object 0"),
+        (np.concatenate([p7[:2], [[0, 0, 0, 0, 0, 0, 0]]]), "object 2"),
+        (p7[:, :6], "shape"),
+    ):
         with pytest.raises(ValueError, match=msg):
             sr.render(bad)
     assert np.allclose(quat_to_rotmat(scaled[:, 3:]), mats[:, :3, :3], atol=1e-12)

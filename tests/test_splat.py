@@ -5,12 +5,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 import pytest
 import torch
 
-from dsg_gym.splat import C0, rasterize, spherical_harmonics
 from benchmarks.splat_scenes import intrinsics, random_scene
+from dsg_gym.splat import C0, rasterize, spherical_harmonics
 
 DIFF_ARGS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -19,8 +18,9 @@ def _render_with_grads(scene, backend, render_mode="RGB", backgrounds=None, seed
     leaves = {k: scene[k].clone().requires_grad_(True) for k in DIFF_ARGS}
     bg = None if backgrounds is None else backgrounds.clone().requires_grad_(True)
     kw = {**scene, **leaves}
-    out, alpha, meta = rasterize(**kw, backgrounds=bg, render_mode=render_mode, backend=backend,
-                                 rasterize_mode=rasterize_mode)
+    out, alpha, meta = rasterize(
+        **kw, backgrounds=bg, render_mode=render_mode, backend=backend, rasterize_mode=rasterize_mode
+    )
     meta["means2d"].retain_grad()
     g = torch.Generator().manual_seed(seed)
     w_out = torch.randn(out.shape, generator=g, dtype=out.dtype)
@@ -40,7 +40,9 @@ def _assert_grads_close(a, b, rel=1e-4):
         assert err <= rel * scale, f"gradient of {k}: max error {err:.3g} vs scale {scale:.3g}"
 
 
-@pytest.mark.parametrize("seed,cameras,mode", [(0, 1, "RGB"), (1, 2, "RGB+ED"), (2, 1, "RGB+D"), (3, 3, "RGB")])
+@pytest.mark.parametrize(
+    "seed,cameras,mode", [(0, 1, "RGB"), (1, 2, "RGB+ED"), (2, 1, "RGB+D"), (3, 3, "RGB")]
+)
 def test_numba_matches_torch_reference(seed, cameras, mode):
     scene = random_scene(1500, width=48, height=40, seed=seed, cameras=cameras)
     D = scene["colors"].shape[1]
@@ -78,8 +80,9 @@ def test_torch_tiling_equals_dense_oracle():
 
     s = random_scene(300, width=40, height=24, seed=7)
     op = s["opacities"][None]
-    m2, cn, d, radii, rects = T.project(s["means"], s["quats"], s["scales"], op, s["viewmats"], s["Ks"],
-                                         40, 24, 0.01, 1e10)
+    m2, cn, d, radii, rects = T.project(
+        s["means"], s["quats"], s["scales"], op, s["viewmats"], s["Ks"], 40, 24, 0.01, 1e10
+    )
     tiled = T.composite(m2, cn, op, s["colors"][None], d, rects, None, 40, 24, tile_size=16)
     dense = T.composite(m2, cn, op, s["colors"][None], d, rects, None, 40, 24, tile_size=None)
     assert (tiled[0] - dense[0]).abs().max() <= 1e-6
@@ -113,12 +116,24 @@ def test_antialiasing_factor_is_the_determinant_ratio():
     """Opacity x sqrt(det Sigma / det(Sigma + 0.3 I)), from the 2D covariance of one projected Gaussian."""
     from dsg_gym.splat.numba_project import BLUR
 
-    for scale, rot in ((0.01, (1.0, 0.0, 0.0, 0.0)), (0.05, (0.9, 0.3, -0.2, 0.1)), (0.3, (0.6, 0.0, 0.8, 0.0))):
-        out = _single([0.05, -0.02, 2.0], [scale, 0.4 * scale, 1.5 * scale], 0.7, [1.0, 1.0, 1.0], quat=rot,
-                      rasterize_mode="antialiased")
+    for scale, rot in (
+        (0.01, (1.0, 0.0, 0.0, 0.0)),
+        (0.05, (0.9, 0.3, -0.2, 0.1)),
+        (0.3, (0.6, 0.0, 0.8, 0.0)),
+    ):
+        out = _single(
+            [0.05, -0.02, 2.0],
+            [scale, 0.4 * scale, 1.5 * scale],
+            0.7,
+            [1.0, 1.0, 1.0],
+            quat=rot,
+            rasterize_mode="antialiased",
+        )
         cn = out[2]["conics"][0, 0].double()
         sig = torch.linalg.inv(torch.tensor([[cn[0], cn[1]], [cn[1], cn[2]]]))  # blurred covariance
-        want = 0.7 * math.sqrt(float(torch.det(sig - BLUR * torch.eye(2, dtype=torch.float64)) / torch.det(sig)))
+        want = 0.7 * math.sqrt(
+            float(torch.det(sig - BLUR * torch.eye(2, dtype=torch.float64)) / torch.det(sig))
+        )
         assert abs(float(out[2]["opacities"][0, 0]) - want) <= 1e-5
     # A Gaussian much smaller than a pixel keeps its integrated weight (~ o * 2 pi sqrt(det Sigma)) instead of
     # growing to the low-pass's size: total rendered alpha far below the classic mode's.
@@ -145,9 +160,19 @@ def test_eps2d_is_the_low_pass_variance(backend):
     z, s, o = 3.0, 0.02, 0.8
     for eps in (0.1, 0.3, 1.0):
         K = intrinsics(W, H)[None]
-        _, alpha, _ = rasterize(torch.tensor([[0.0, 0.0, z]]), torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
-                                torch.tensor([[s, s, s]]), torch.tensor([o]), torch.ones(1, 3), torch.eye(4)[None],
-                                K, W, H, backend=backend, eps2d=eps)
+        _, alpha, _ = rasterize(
+            torch.tensor([[0.0, 0.0, z]]),
+            torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+            torch.tensor([[s, s, s]]),
+            torch.tensor([o]),
+            torch.ones(1, 3),
+            torch.eye(4)[None],
+            K,
+            W,
+            H,
+            backend=backend,
+            eps2d=eps,
+        )
         var = (f * s / z) ** 2 + eps
         assert float(alpha[0, 16, 17, 0]) == pytest.approx(o * math.exp(-0.5 / var), rel=1e-5)
 
@@ -160,21 +185,50 @@ def test_gradcheck_float64(backend, mode):
     fixed = {k: s[k] for k in ("viewmats", "Ks", "width", "height")}
 
     def f(means, quats, scales, opacities, colors, backgrounds):
-        out, alpha, _ = rasterize(means, quats, scales, opacities, colors, **fixed, backgrounds=backgrounds,
-                                  render_mode="RGB+ED", backend=backend, rasterize_mode=mode)
+        out, alpha, _ = rasterize(
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            **fixed,
+            backgrounds=backgrounds,
+            render_mode="RGB+ED",
+            backend=backend,
+            rasterize_mode=mode,
+        )
         return out, alpha
 
     inputs = [s[k].clone().requires_grad_(True) for k in DIFF_ARGS] + [bg.requires_grad_(True)]
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
-def _single(mean, scale, opacity, color, width=33, height=33, quat=(1.0, 0.0, 0.0, 0.0), backend="numba",
-            rasterize_mode="classic"):
+def _single(
+    mean,
+    scale,
+    opacity,
+    color,
+    width=33,
+    height=33,
+    quat=(1.0, 0.0, 0.0, 0.0),
+    backend="numba",
+    rasterize_mode="classic",
+):
     K = intrinsics(width, height)[None]
     scale = list(scale) if isinstance(scale, (list, tuple)) else [scale] * 3
-    return rasterize(torch.tensor([mean], dtype=torch.float32), torch.tensor([quat]),
-                     torch.tensor([scale]), torch.tensor([opacity]), torch.tensor([color]),
-                     torch.eye(4)[None], K, width, height, backend=backend, rasterize_mode=rasterize_mode)
+    return rasterize(
+        torch.tensor([mean], dtype=torch.float32),
+        torch.tensor([quat]),
+        torch.tensor([scale]),
+        torch.tensor([opacity]),
+        torch.tensor([color]),
+        torch.eye(4)[None],
+        K,
+        width,
+        height,
+        backend=backend,
+        rasterize_mode=rasterize_mode,
+    )
 
 
 @pytest.mark.parametrize("backend", ["numba", "torch"])
@@ -208,9 +262,16 @@ def test_front_gaussian_wins(backend):
     K = intrinsics(W, H)[None]
     means = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, 2.0]])  # the second is in front
     colors = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
-    args = dict(quats=torch.tensor([[1.0, 0, 0, 0]] * 2), scales=torch.full((2, 3), 0.2),
-                opacities=torch.tensor([0.9, 0.7]), viewmats=torch.eye(4)[None], Ks=K, width=W, height=H,
-                backend=backend)
+    args = dict(
+        quats=torch.tensor([[1.0, 0, 0, 0]] * 2),
+        scales=torch.full((2, 3), 0.2),
+        opacities=torch.tensor([0.9, 0.7]),
+        viewmats=torch.eye(4)[None],
+        Ks=K,
+        width=W,
+        height=H,
+        backend=backend,
+    )
     out, alpha, meta = rasterize(means=means, colors=colors, **args)
     c = out[0, 8, 8]
     assert c[0] == pytest.approx(0.7, rel=1e-5)  # front: alpha 0.7, T = 1
@@ -218,18 +279,25 @@ def test_front_gaussian_wins(backend):
     assert alpha[0, 8, 8, 0] == pytest.approx(1 - 0.3 * 0.1, rel=1e-5)
     assert meta["depths"][0].tolist() == pytest.approx([4.0, 2.0])
     # Swapping the list order changes nothing: order comes from depth.
-    out2, _, _ = rasterize(means=means.flip(0), colors=colors.flip(0),
-                           **{**args, "opacities": args["opacities"].flip(0)})
+    out2, _, _ = rasterize(
+        means=means.flip(0), colors=colors.flip(0), **{**args, "opacities": args["opacities"].flip(0)}
+    )
     assert torch.equal(out, out2) if backend == "numba" else (out - out2).abs().max() < 1e-6
 
 
 @pytest.mark.parametrize("backend", ["numba", "torch"])
 def test_gaussian_behind_camera_contributes_nothing(backend):
-    leaves = [torch.tensor([[0.0, 0.0, -2.0]]), torch.tensor([[1.0, 0, 0, 0]]), torch.tensor([[0.5] * 3]),
-              torch.tensor([0.9]), torch.tensor([[1.0, 1.0, 1.0]])]
+    leaves = [
+        torch.tensor([[0.0, 0.0, -2.0]]),
+        torch.tensor([[1.0, 0, 0, 0]]),
+        torch.tensor([[0.5] * 3]),
+        torch.tensor([0.9]),
+        torch.tensor([[1.0, 1.0, 1.0]]),
+    ]
     leaves = [t.requires_grad_(True) for t in leaves]
-    out, alpha, meta = rasterize(*leaves, torch.eye(4)[None], intrinsics(16, 16)[None], 16, 16,
-                                 backend=backend)
+    out, alpha, meta = rasterize(
+        *leaves, torch.eye(4)[None], intrinsics(16, 16)[None], 16, 16, backend=backend
+    )
     assert alpha.abs().max() == 0 and out.abs().max() == 0
     assert meta["radii"].abs().max() == 0
     (out.sum() + alpha.sum()).backward()
@@ -241,7 +309,7 @@ def test_multi_camera_equals_separate_renders():
     s = random_scene(700, width=32, height=32, seed=11, cameras=3)
     out, alpha, _ = rasterize(**s)
     for c in range(3):
-        one = {**s, "viewmats": s["viewmats"][c:c + 1], "Ks": s["Ks"][c:c + 1]}
+        one = {**s, "viewmats": s["viewmats"][c : c + 1], "Ks": s["Ks"][c : c + 1]}
         o1, a1, _ = rasterize(**one)
         assert torch.equal(o1[0], out[c]) and torch.equal(a1[0], alpha[c])
 
@@ -282,8 +350,18 @@ def test_depth_modes():
 
 def test_empty_scene_renders_background():
     z = torch.zeros
-    out, alpha, _ = rasterize(z(0, 3), z(0, 4), z(0, 3), z(0), z(0, 3), torch.eye(4)[None],
-                              intrinsics(16, 8)[None], 16, 8, backgrounds=torch.tensor([0.2, 0.4, 0.6]))
+    out, alpha, _ = rasterize(
+        z(0, 3),
+        z(0, 4),
+        z(0, 3),
+        z(0),
+        z(0, 3),
+        torch.eye(4)[None],
+        intrinsics(16, 8)[None],
+        16,
+        8,
+        backgrounds=torch.tensor([0.2, 0.4, 0.6]),
+    )
     assert out.shape == (1, 8, 16, 3) and alpha.abs().max() == 0
     assert torch.allclose(out[0, 3, 5], torch.tensor([0.2, 0.4, 0.6]))
 
@@ -296,7 +374,7 @@ def test_spherical_harmonics_orthonormal():
     nphi = 32
     phi = (np.arange(nphi) + 0.5) * 2 * np.pi / nphi
     ct, ph = np.meshgrid(xg, phi, indexing="ij")
-    st = np.sqrt(1 - ct ** 2)
+    st = np.sqrt(1 - ct**2)
     dirs = torch.tensor(np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1).reshape(-1, 3))
     w = torch.tensor((wg[:, None] * np.full(nphi, 2 * np.pi / nphi)[None]).reshape(-1))
     basis = []
@@ -347,12 +425,16 @@ def test_sh_rotation_turns_the_colour_function_with_the_gaussian():
         R1, R2 = (Rotation.random(random_state=deg + i).as_matrix() for i in (0, 10))
         c = rng.normal(size=(7, k, 3))
         d = rng.normal(size=(7, 3))
-        ev = lambda coeffs, dirs: spherical_harmonics(deg, torch.from_numpy(dirs), torch.from_numpy(coeffs)).numpy()  # noqa: E731
+        ev = lambda coeffs, dirs: spherical_harmonics(
+            deg, torch.from_numpy(dirs), torch.from_numpy(coeffs)
+        ).numpy()  # noqa: E731
         # f'(d) = f(R^T d)
         assert np.allclose(ev(rotate_sh(c, R1), d), ev(c, d @ R1), atol=1e-12)
         D1, D2 = sh_rotation(R1, deg), sh_rotation(R2, deg)
         assert np.allclose(sh_rotation(R1 @ R2, deg), D1 @ D2, atol=1e-12)  # a representation
-        assert np.allclose(D1 @ D1.T, np.eye(k), atol=1e-12) and np.allclose(sh_rotation(np.eye(3), deg), np.eye(k))
+        assert np.allclose(D1 @ D1.T, np.eye(k), atol=1e-12) and np.allclose(
+            sh_rotation(np.eye(3), deg), np.eye(k)
+        )
         assert np.array_equal(D1[0], np.eye(k)[0])  # DC untouched
         # the torch-free basis (world-file reader) equals the renderer's torch SH
         u = d / np.linalg.norm(d, axis=1, keepdims=True)
@@ -389,11 +471,30 @@ def test_splat_rows_with_precomputed_spans_equals_splat_forward():
             r = int(math.ceil(3.0 * math.sqrt(np.linalg.eigvalsh(cov).max())))
             rect = (max(int(u) - r, 0), min(int(u) + r, W - 1), max(int(v) - r, 0), min(int(v) + r, H - 1))
             col = rng.uniform(0, 1, 3).astype(np.float32)
-            f1 = raster.splat_forward(consts, u, v, ca, cb, cc, o, *rect, col, px0, py0, pw, ph, a[7], a[8], a[4], a[5],
-                                 a[6])
+            f1 = raster.splat_forward(
+                consts, u, v, ca, cb, cc, o, *rect, col, px0, py0, pw, ph, a[7], a[8], a[4], a[5], a[6]
+            )
             raster.span_rows(consts, u, v, ca, cb, cc, o, *rect, px0, py0, pw, ph, b[8], rows)
-            f2 = raster.splat_rows(consts, u, v, ca, cb, cc, o, rect[2], rect[3], rows, col, py0, ph, b[7], b[8], b[4],
-                              b[5], b[6])
+            f2 = raster.splat_rows(
+                consts,
+                u,
+                v,
+                ca,
+                cb,
+                cc,
+                o,
+                rect[2],
+                rect[3],
+                rows,
+                col,
+                py0,
+                ph,
+                b[7],
+                b[8],
+                b[4],
+                b[5],
+                b[6],
+            )
             assert f1 == f2
             finished += f1
         for x, y in zip(a[4:7], b[4:7]):
@@ -424,7 +525,7 @@ def test_numba_sh_matches_the_torch_reference_with_gradients(degree, dtype):
     torch.testing.assert_close(outs[0], outs[1], rtol=tol, atol=tol)
     for a, b in zip(grads[0], grads[1]):
         torch.testing.assert_close(a, b, rtol=tol, atol=tol * max(1.0, float(b.abs().max())))
-    unused = grads[0][1][:, :, (degree + 1) ** 2:]
+    unused = grads[0][1][:, :, (degree + 1) ** 2 :]
     assert unused.numel() == 0 or float(unused.abs().max()) == 0.0  # unused bases get no gradient
 
 
@@ -461,9 +562,21 @@ def test_pair_gather_and_gaussian_major_gradients(per_camera):
     colors = colors if colors.ndim == 3 else colors[None]
     opac = scene["opacities"].numpy()
     opac = opac if opac.ndim == 2 else opac[None]
-    m2, cn, depths, _, rects = (t.detach().numpy() for t in numba_backend.project(
-        scene["means"], scene["quats"], scene["scales"], torch.from_numpy(opac), scene["viewmats"], scene["Ks"], 40,
-        34, 0.01, 1e10))
+    m2, cn, depths, _, rects = (
+        t.detach().numpy()
+        for t in numba_backend.project(
+            scene["means"],
+            scene["quats"],
+            scene["scales"],
+            torch.from_numpy(opac),
+            scene["viewmats"],
+            scene["Ks"],
+            40,
+            34,
+            0.01,
+            1e10,
+        )
+    )
     tx, ty = 3, 3
     order, counts = binning.depth_order(depths.view(np.uint32), rects)
     t_off, t_gauss, g_off, g_pairs = binning.bin_gaussians(rects, order, counts, tx, ty)
@@ -480,16 +593,35 @@ def test_pair_gather_and_gaussian_major_gradients(per_camera):
     consts = raster.make_consts(np.float32)
     out = np.empty((2, 34, 40, D), np.float32)
     out_T = np.empty((2, 34, 40), np.float32)
-    raster.composite_forward(*pairs, t_off, tx, ty, 40, 34, consts, binning.balanced_order(2 * tx * ty), out, out_T)
+    raster.composite_forward(
+        *pairs, t_off, tx, ty, 40, 34, consts, binning.balanced_order(2 * tx * ty), out, out_T
+    )
     ref = np.empty_like(out)
     ref_T = np.empty_like(out_T)
     for ct in range(2 * tx * ty):  # the direct loop, one tile at a time
         c = ct // (tx * ty)
-        px0, py0, pw, ph, acc, trans, row_done, xc, yc = raster.tile_state(ct % (tx * ty), tx, 40, 34, D, np.float32)
+        px0, py0, pw, ph, acc, trans, row_done, xc, yc = raster.tile_state(
+            ct % (tx * ty), tx, 40, 34, D, np.float32
+        )
         for s in range(t_off[ct], t_off[ct + 1]):
             k = t_gauss[s]
-            raster.splat_forward(consts, *m2[c, k], *cn[c, k], opac[c if per_camera else 0, k], *rects[c, k],
-                            colors[c if per_camera else 0, k], px0, py0, pw, ph, xc, yc, acc, trans, row_done)
+            raster.splat_forward(
+                consts,
+                *m2[c, k],
+                *cn[c, k],
+                opac[c if per_camera else 0, k],
+                *rects[c, k],
+                colors[c if per_camera else 0, k],
+                px0,
+                py0,
+                pw,
+                ph,
+                xc,
+                yc,
+                acc,
+                trans,
+                row_done,
+            )
         raster.store_tile(c, px0, py0, pw, ph, acc, trans, ref, ref_T)
     np.testing.assert_array_equal(out, ref)
     np.testing.assert_array_equal(out_T, ref_T)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dsg_gym.splat import rasterize
 from benchmarks.splat_scenes import intrinsics, random_scene
+from dsg_gym.splat import rasterize
 
 BACKENDS = ["numba", "torch"]
 
@@ -15,10 +15,21 @@ def _run(backend, means, quats, scales, opacities, width=24, height=20, **kw):
     n = means.shape[0]
     leaves = [t.clone().requires_grad_(True) for t in (means, quats, scales, opacities)]
     colors = torch.rand(n, 4, generator=torch.Generator().manual_seed(0)).requires_grad_(True)
-    out, alpha, meta = rasterize(*leaves, colors, torch.eye(4)[None], intrinsics(width, height)[None],
-                                 width, height, backend=backend, render_mode="RGB+ED", **kw)
+    out, alpha, meta = rasterize(
+        *leaves,
+        colors,
+        torch.eye(4)[None],
+        intrinsics(width, height)[None],
+        width,
+        height,
+        backend=backend,
+        render_mode="RGB+ED",
+        **kw,
+    )
     g = torch.Generator().manual_seed(1)
-    loss = (out * torch.randn(out.shape, generator=g)).sum() + (alpha * torch.randn(alpha.shape, generator=g)).sum()
+    loss = (out * torch.randn(out.shape, generator=g)).sum() + (
+        alpha * torch.randn(alpha.shape, generator=g)
+    ).sum()
     loss.backward()
     assert torch.isfinite(out).all() and torch.isfinite(alpha).all()
     assert ((alpha >= 0) & (alpha <= 1)).all()
@@ -125,6 +136,7 @@ def test_float32_agrees_with_float64():
 # ---------------------------------------------------------------------------------------------
 # Bad input: a ValueError naming the argument.
 
+
 def _good():
     return random_scene(10, width=16, height=16, seed=0)
 
@@ -140,9 +152,18 @@ def test_non_finite_input_names_argument(name, bad):
         rasterize(**s)
 
 
-@pytest.mark.parametrize("name,shape", [("means", (10, 2)), ("quats", (10, 3)), ("scales", (9, 3)),
-                                        ("opacities", (10, 1)), ("colors", (9, 3)), ("viewmats", (1, 3, 4)),
-                                        ("Ks", (2, 3, 3))])
+@pytest.mark.parametrize(
+    "name,shape",
+    [
+        ("means", (10, 2)),
+        ("quats", (10, 3)),
+        ("scales", (9, 3)),
+        ("opacities", (10, 1)),
+        ("colors", (9, 3)),
+        ("viewmats", (1, 3, 4)),
+        ("Ks", (2, 3, 3)),
+    ],
+)
 def test_wrong_shape_names_argument(name, shape):
     s = _good()
     s[name] = torch.rand(shape)

@@ -88,9 +88,9 @@ def test_layout_and_scene_json(tiny_capture, spec):
             assert img.mode == "RGB" and img.size == (TINY.width, TINY.height)
             assert Image.open(tiny_capture / name / fr["mask_path"]).mode == "L"
             assert Image.open(tiny_capture / name / fr["depth_path"]).mode == "I;16"
-    assert not [
-        p for p in tiny_capture.parent.iterdir() if p.name.startswith(".")
-    ], "staging folder left behind"
+    assert not [p for p in tiny_capture.parent.iterdir() if p.name.startswith(".")], (
+        "staging folder left behind"
+    )
 
 
 def test_same_seed_same_bytes_other_seed_differs(tiny_capture, tmp_path):
@@ -485,7 +485,9 @@ def test_lighting_presets(spec):
             assert cam < 0 and m.vis.headlight.diffuse[0] == LIGHTING[name][1]
             continue
         # a positional light of the preset's strength, no shadows, no cone; the headlight only adds ambient
-        assert cam >= 0 and m.light_type[cam] == mujoco.mjtLightType.mjLIGHT_SPOT and not m.light_castshadow[cam]
+        assert (
+            cam >= 0 and m.light_type[cam] == mujoco.mjtLightType.mjLIGHT_SPOT and not m.light_castshadow[cam]
+        )
         np.testing.assert_allclose(m.light_diffuse[cam], LIGHTING[name][1])
         assert m.vis.headlight.diffuse[0] == 0.0 and m.vis.headlight.ambient[0] > 0
     np.testing.assert_allclose(fixed["soft"], LIGHTING["soft"][0] * fixed["spot"], rtol=1e-6)
@@ -543,9 +545,11 @@ def test_supersampled_rgb_is_the_box_mean_of_a_larger_render(spec):
     data = mujoco.MjData(built.model)
     set_object_poses(built, data, sample_states(spec, rng_for(0, "states"), 0)["state1"])
     c2w = look_at_opengl([0.3, -0.6, 0.5], [0.0, 0.0, 0.0])
-    with SceneRenderer(built, 64, 48) as big, SceneRenderer(built, 32, 24) as point, SceneRenderer(
-        built, 32, 24, supersample=2
-    ) as ss:
+    with (
+        SceneRenderer(built, 64, 48) as big,
+        SceneRenderer(built, 32, 24) as point,
+        SceneRenderer(built, 32, 24, supersample=2) as ss,
+    ):
         hi, _, _ = big.render(data, c2w, seg=False, depth=False)
         rgb_p, ids_p, d_p = point.render(data, c2w)
         rgb_s, ids_s, d_s = ss.render(data, c2w)

@@ -57,6 +57,13 @@ def test_vector_env_workers_forked_after_openmp_render_the_same_images(tmp_path)
     script = tmp_path / "fork_after_omp.py"
     script.write_text(SCRIPT)
     env = {**os.environ, "NUMBA_THREADING_LAYER": "omp", "MUJOCO_GL": "egl"}
-    r = subprocess.run([sys.executable, str(script)], cwd=REPO, env=env, capture_output=True, text=True,
-                       timeout=600, check=False)
+    r = subprocess.run(
+        [sys.executable, str(script)],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stdout[-2000:] + r.stderr[-3000:]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import pytest
-
 from _captures import tiny_capture
 
 from benchmarks.train_step import main
@@ -31,11 +30,45 @@ def test_train_step_benchmark_from_initial_fields_and_from_a_checkpoint(tmp_path
     # trained fields: a checkpoint at the joint phase's start, as dsg-suite's recon.ckpt
     cap = tiny_capture(tmp_path, size=24, views=8)
     ckpt = tmp_path / "recon.ckpt"
-    assert dual_cli.main_two_state([str(cap), "--out", str(tmp_path / "w.dsgw"), "--preset", "quick", "--iterations", "20",
-                          "--stop-at-joint", "--checkpoint", str(ckpt), "--quiet"]) == 0
+    assert (
+        dual_cli.main_two_state(
+            [
+                str(cap),
+                "--out",
+                str(tmp_path / "w.dsgworld"),
+                "--preset",
+                "quick",
+                "--iterations",
+                "20",
+                "--stop-at-joint",
+                "--checkpoint",
+                str(ckpt),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     out2 = tmp_path / "step2.json"
-    assert main(["--out", str(out2), "--quick", "--iterations", "20", "--capture", str(cap), "--checkpoint",
-                 str(ckpt), "--steps", "2", "--warmup", "1"]) == 0
+    assert (
+        main(
+            [
+                "--out",
+                str(out2),
+                "--quick",
+                "--iterations",
+                "20",
+                "--capture",
+                str(cap),
+                "--checkpoint",
+                str(ckpt),
+                "--steps",
+                "2",
+                "--warmup",
+                "1",
+            ]
+        )
+        == 0
+    )
     r2 = json.loads(out2.read_text())
     _check(r2, 5.0)
     assert r2["config"]["checkpoint"] == str(ckpt) and "profile" not in r2

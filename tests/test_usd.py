@@ -97,8 +97,13 @@ def world():
 @pytest.mark.parametrize("suffix", [".usdc", ".usda"])
 def test_round_trip_exact(tmp_path, world, suffix):
     background, objects, cameras = world
-    path = export_stage(tmp_path / f"world{suffix}", background, objects, cameras,
-                        table_bounds=[[-0.5, -0.4, 0.0], [0.5, 0.4, 0.0]])
+    path = export_stage(
+        tmp_path / f"world{suffix}",
+        background,
+        objects,
+        cameras,
+        table_bounds=[[-0.5, -0.4, 0.0], [0.5, 0.4, 0.0]],
+    )
     assert path == tmp_path / f"world{suffix}" and path.is_file()
     assert sorted(os.listdir(tmp_path)) == [f"world{suffix}"]  # no temporary left
     magic = path.read_bytes()[:8]
@@ -181,8 +186,10 @@ def test_quaternion_layout_pinned(tmp_path):
 
     text = path.read_text()
     assert "quatf[] orientations = [(0.1, 0.2, 0.3, 0.4)]" in text
-    assert "quatd xformOp:orient = (0.7071067811865476, 0, 0, 0.7071067811865476)" in text or \
-        "quatd xformOp:orient = (0.7071067811865475, 0, 0, 0.7071067811865475)" in text
+    assert (
+        "quatd xformOp:orient = (0.7071067811865476, 0, 0, 0.7071067811865476)" in text
+        or "quatd xformOp:orient = (0.7071067811865475, 0, 0, 0.7071067811865475)" in text
+    )
 
     stage = Usd.Stage.Open(str(path))
     raw = stage.GetPrimAtPath("/World/Background").GetAttribute("orientations").Get()
@@ -195,7 +202,8 @@ def test_quaternion_layout_pinned(tmp_path):
     assert orient.GetReal() == pytest.approx(math.sqrt(0.5))
     assert tuple(orient.GetImaginary()) == pytest.approx((0.0, 0.0, math.sqrt(0.5)))
     m = UsdGeom.Xformable(stage.GetPrimAtPath("/World/Objects/box")).ComputeLocalToWorldTransform(
-        Usd.TimeCode.Default())
+        Usd.TimeCode.Default()
+    )
     assert tuple(m.Transform(Gf.Vec3d(1, 0, 0))) == pytest.approx((0.0, 1.0, 0.0), abs=1e-12)
 
     got = read_stage(path)
@@ -205,8 +213,10 @@ def test_quaternion_layout_pinned(tmp_path):
 
 def test_rotmat_quat_round_trip():
     rng = np.random.default_rng(3)
-    rots = np.stack([random_rotation(rng) for _ in range(200)]
-                    + [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])])
+    rots = np.stack(
+        [random_rotation(rng) for _ in range(200)]
+        + [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
+    )
     q = rotmat_to_quat(rots)
     assert (q[:, 0] >= 0).all()
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-12)
@@ -228,9 +238,17 @@ def test_validators_report_no_errors(tmp_path, world, suffix):
     poses[1, 0] = random_pose(rng)
     episode = Episode(10.0, poses, rewards=[0.5, 1.0])
     plain = export_stage(tmp_path / f"plain{suffix}", background, objects, cameras)
-    full = export_stage(tmp_path / f"full{suffix}", background, objects, cameras, episode=episode,
-                        table_bounds=[[-0.5, -0.4, 0.0], [0.5, 0.4, 0.0]], meters_per_unit=0.01,
-                        up_axis="Y", kilograms_per_unit=0.001)
+    full = export_stage(
+        tmp_path / f"full{suffix}",
+        background,
+        objects,
+        cameras,
+        episode=episode,
+        table_bounds=[[-0.5, -0.4, 0.0], [0.5, 0.4, 0.0]],
+        meters_per_unit=0.01,
+        up_axis="Y",
+        kilograms_per_unit=0.001,
+    )
     for path in (plain, full):
         issues = validate_stage(path)
         errors = [str(i) for i in issues if i.severity == "Error"]
@@ -251,8 +269,14 @@ def test_validator_catches_a_broken_stage():
 def test_stage_metadata(tmp_path):
     rng = np.random.default_rng(2)
     obj = UsdObject("a", random_set(rng, 5), np.eye(4))
-    path = export_stage(tmp_path / "m.usdc", random_set(rng, 5), [obj],
-                        meters_per_unit=0.01, up_axis="Y", kilograms_per_unit=0.001)
+    path = export_stage(
+        tmp_path / "m.usdc",
+        random_set(rng, 5),
+        [obj],
+        meters_per_unit=0.01,
+        up_axis="Y",
+        kilograms_per_unit=0.001,
+    )
     got = read_stage(path)
     md = got.metadata
     assert md["metersPerUnit"] == 0.01 and md["upAxis"] == "Y" and md["kilogramsPerUnit"] == 0.001
@@ -340,8 +364,13 @@ def test_cameras_project_consistently(tmp_path, world):
     rng = np.random.default_rng(9)
     cams = [
         make_camera("a"),
-        UsdCamera("b", look_at((0.1, 0.9, 0.3), (0.05, 0.0, 0.1)),
-                  np.array([[400.0, 0, 300.5], [0, 380.0, 170.25], [0, 0, 1]]), 640, 360),
+        UsdCamera(
+            "b",
+            look_at((0.1, 0.9, 0.3), (0.05, 0.0, 0.1)),
+            np.array([[400.0, 0, 300.5], [0, 380.0, 170.25], [0, 0, 1]]),
+            640,
+            360,
+        ),
     ]
     path = export_stage(tmp_path / "c.usdc", background, [], cams)
     stage = Usd.Stage.Open(str(path))
@@ -438,8 +467,10 @@ def test_bad_inputs_raise_value_error(tmp_path, world):
         (dict(objects=[UsdObject("a", background, np.eye(3))]), r"pose must be \[4, 4\]"),
         (dict(objects=[UsdObject("a", background, np.eye(4), mass=0.0)]), r"mass"),
         (dict(objects=[UsdObject("a", background, np.eye(4))] * 2), r"same prim name"),
-        (dict(objects=[UsdObject("a b", background, np.eye(4)), UsdObject("a_b", background, np.eye(4))]),
-         r"same prim name"),
+        (
+            dict(objects=[UsdObject("a b", background, np.eye(4)), UsdObject("a_b", background, np.eye(4))]),
+            r"same prim name",
+        ),
         (dict(episode=Episode(10.0, np.stack([np.eye(4)] * 2)[None])), r"episode\.poses .*\[T, 3, 4, 4\]"),
         (dict(cameras=[UsdCamera("c", cameras[0].viewmat, K_skew, 10, 10)]), r"'c'\.K: .*no skew"),
         (dict(cameras=[UsdCamera("c", cameras[0].viewmat, cameras[0].K, 0, 10)]), r"'c'\.width"),

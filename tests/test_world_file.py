@@ -14,8 +14,16 @@ from safetensors.numpy import save as st_save
 
 from dsg_gym.cameras import Cameras
 from dsg_gym.gaussians import GaussianSet
-from dsg_gym.world import World, WorldFormatError, WorldObject, load_world, parse_world_bytes
-from dsg_gym.world import build_world, encode_world, write_world
+from dsg_gym.world import (
+    World,
+    WorldFormatError,
+    WorldObject,
+    build_world,
+    encode_world,
+    load_world,
+    parse_world_bytes,
+    write_world,
+)
 
 
 def _random_set(rng, n, degree=1, nf=16, encodings=True):
@@ -99,7 +107,7 @@ def _same_set(a: GaussianSet, b: GaussianSet):
 
 
 def test_round_trip_is_exact(tmp_path, world):
-    path = write_world(tmp_path / "w.dsgw", world)
+    path = write_world(tmp_path / "w.dsgworld", world)
     back = load_world(path)
     _same_set(world.background, back.background)
     assert back.object_ids == (1, 4) and back.object_names == ("red_box", "ball")
@@ -117,7 +125,7 @@ def test_round_trip_is_exact(tmp_path, world):
     # deterministic bytes, and re-encoding the loaded world gives the same file
     assert encode_world(world) == encode_world(back) == path.read_bytes()
     # no temp files left behind by the atomic write
-    assert [p.name for p in tmp_path.iterdir()] == ["w.dsgw"]
+    assert [p.name for p in tmp_path.iterdir()] == ["w.dsgworld"]
 
 
 @pytest.mark.parametrize("keep", [0, 5, 8, 40, -1, -100])
@@ -125,7 +133,7 @@ def test_truncated_file_is_refused(tmp_path, world, keep):
     data = encode_world(world)
     (hlen,) = struct.unpack("<Q", data[:8])
     cut = {0: 0, 5: 5, 8: 8, 40: 40, -1: len(data) - 1, -100: 8 + hlen + 10}[keep]
-    p = tmp_path / "t.dsgw"
+    p = tmp_path / "t.dsgworld"
     p.write_bytes(data[:cut])
     with pytest.raises(WorldFormatError, match="truncated"):
         load_world(p)
@@ -201,7 +209,7 @@ def test_build_world_puts_objects_in_their_frame_and_back():
 
 
 def test_reader_does_not_need_torch(tmp_path, world):
-    path = write_world(tmp_path / "w.dsgw", world)
+    path = write_world(tmp_path / "w.dsgworld", world)
     code = (
         "import sys; sys.modules['torch'] = None\n"
         "from dsg_gym.world import load_world\n"

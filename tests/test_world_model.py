@@ -3,12 +3,12 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from _worlds import two_box_world
 
 from dsg_gym import geometry as G
 from dsg_gym import poses as P
 from dsg_gym.cameras import Cameras
 from dsg_gym.world_model import WorldModel, WorldModelError, derive_table_bounds
-from _worlds import two_box_world
 
 
 def test_pose_helpers_agree_with_torch_geometry():
@@ -37,7 +37,12 @@ def test_quat_normalize_huge_tiny_and_bad():
     n = P.quat_normalize(q)
     assert np.all(np.isfinite(n)) and np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-15)
     assert np.allclose(n[0], n[1], atol=1e-15) and n[2, 0] >= 0.0
-    for bad in ([0.0, 0.0, 0.0, 0.0], [np.nan, 1.0, 0.0, 0.0], [np.inf, 0.0, 0.0, 0.0], [1e-13, 0.0, 0.0, 0.0]):
+    for bad in (
+        [0.0, 0.0, 0.0, 0.0],
+        [np.nan, 1.0, 0.0, 0.0],
+        [np.inf, 0.0, 0.0, 0.0],
+        [1e-13, 0.0, 0.0, 0.0],
+    ):
         with pytest.raises(ValueError, match="zero or not finite"):
             P.quat_normalize(np.array(bad))
 
@@ -57,7 +62,9 @@ def test_compose_moves_objects_rigidly():
     np.testing.assert_allclose(np.linalg.norm(gs.quats[nb:], axis=1), 1.0, atol=1e-6)
     # rotations compose: Gaussian frames rotate with the object
     rq = P.quat_to_rotmat(gs.quats[nb : nb + 3].astype(np.float64))
-    np.testing.assert_allclose(rq, m[0, :3, :3][None] @ P.quat_to_rotmat(o0.quats[:3].astype(np.float64)), atol=1e-6)
+    np.testing.assert_allclose(
+        rq, m[0, :3, :3][None] @ P.quat_to_rotmat(o0.quats[:3].astype(np.float64)), atol=1e-6
+    )
     # [K,4,4] input and a rescaled quaternion give the same scene
     p7b = p7.copy()
     p7b[:, 3:] *= -7.0

@@ -16,18 +16,27 @@ def _parser() -> argparse.ArgumentParser:
         "with a recorded episode as time-sampled object poses, or (--ply) to standard 3DGS PLY files.",
     )
     ap.add_argument("world", help="world file (.dsgworld)")
-    ap.add_argument("--out", required=True,
-                    help="stage path (.usdc/.usda; .usdc appended when there is no suffix), "
-                    "or with --ply a folder")
-    ap.add_argument("--poses", default=None,
-                    help="object poses: a state name of the world (state1, state2, ...) or a .npy/.npz/.json "
-                    "file with [K,4,4] or [K,7] poses (default: the reference state, or the episode's "
-                    "first step)")
-    ap.add_argument("--episode", default=None,
-                    help=".npz episode file (RecordEpisode.save): writes an animated stage")
-    ap.add_argument("--ply", action="store_true",
-                    help="write background.ply + <object>.ply (3DGS Inria layout) into the --out folder; "
-                    "objects in their own frames unless --poses is given")
+    ap.add_argument(
+        "--out",
+        required=True,
+        help="stage path (.usdc/.usda; .usdc appended when there is no suffix), or with --ply a folder",
+    )
+    ap.add_argument(
+        "--poses",
+        default=None,
+        help="object poses: a state name of the world (state1, state2, ...) or a .npy/.npz/.json "
+        "file with [K,4,4] or [K,7] poses (default: the reference state, or the episode's "
+        "first step)",
+    )
+    ap.add_argument(
+        "--episode", default=None, help=".npz episode file (RecordEpisode.save): writes an animated stage"
+    )
+    ap.add_argument(
+        "--ply",
+        action="store_true",
+        help="write background.ply + <object>.ply (3DGS Inria layout) into the --out folder; "
+        "objects in their own frames unless --poses is given",
+    )
     return ap
 
 

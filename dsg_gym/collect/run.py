@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from ..io.atomic import atomic_write_bytes, remove_partial
 from .episodes import collect_episodes
 from .policies import policy_name
 from .rollout import CollectError, EpisodeRecord
-from ..io.atomic import atomic_write_bytes, remove_partial
 from .writer import IMAGE_ENCODINGS, ShardStore, combine_shards, env_spec_for
 
 __all__ = ["WORK_DIR", "CollectResult", "collect", "default_dataset_id"]
@@ -224,8 +224,16 @@ def collect(
     stats = {"episodes": 0, "transitions": 0}
     try:
         if todo and backend == "local":
-            stats = collect_episodes(settings, todo, store.root, num_envs=num_envs, shard_episodes=shard_episodes,
-                                     flush_seconds=flush_seconds, on_episode=bar.episode, on_steps=bar.steps)  # fmt: skip
+            stats = collect_episodes(
+                settings,
+                todo,
+                store.root,
+                num_envs=num_envs,
+                shard_episodes=shard_episodes,
+                flush_seconds=flush_seconds,
+                on_episode=bar.episode,
+                on_steps=bar.steps,
+            )
         elif todo:
             from .ray_backend import collect_ray
 

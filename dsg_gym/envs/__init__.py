@@ -13,9 +13,7 @@ def register_envs() -> None:
     """Register ``DSGWorld-v0`` (idempotent)."""
     if ENV_ID not in gymnasium.registry:
         gymnasium.register(
-            id=ENV_ID,
-            entry_point="dsg_gym.envs.dsg_world:DSGWorldEnv",
-            max_episode_steps=MAX_EPISODE_STEPS,
+            id=ENV_ID, entry_point="dsg_gym.envs.dsg_world:DSGWorldEnv", max_episode_steps=MAX_EPISODE_STEPS
         )
 
 

@@ -10,28 +10,21 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from ..assets import world_path
 from ..cameras import Cameras, intrinsics_from_fov, look_at
-from ..poses import (
-    as_poses7,
-    axis_angle_to_quat,
-    matrix_to_pose7,
-    quat_multiply,
-    quat_normalize,
-    yaw_to_quat,
-)
+from ..poses import as_poses7, axis_angle_to_quat, matrix_to_pose7, quat_multiply, quat_normalize, yaw_to_quat
 from ..world_model import WorldModel
 from .tasks import RearrangementTask, TaskParams
 
 __all__ = ["DSGWorldEnv", "DEFAULT_WORLD", "GEOMETRY_WORLD", "load_default_world"]
 
-_ASSETS = Path(__file__).resolve().parents[2] / "assets" / "worlds"
 #: the bundled world: DSG-World trained on the synthetic ``two_blocks`` capture (how to reproduce it:
-#: README, "The bundled world")
-DEFAULT_WORLD = _ASSETS / "two_blocks_dsg.dsgworld"
+#: docs/environment.md, "The bundled world")
+DEFAULT_WORLD = world_path("two_blocks_dsg.dsgworld")
 #: the geometry world of the same scene (Gaussians sampled on the MuJoCo geoms: the ideal reconstruction;
 #: ``python -m train_world.cli.geom_world``), used by tests and as a reference
-GEOMETRY_WORLD = _ASSETS / "default_geom.dsgworld"
-_REBUILD = "see README, 'The bundled world', for the commands that rebuild it"
+GEOMETRY_WORLD = world_path("default_geom.dsgworld")
+_REBUILD = "docs/environment.md, 'The bundled world', gives the commands that rebuild it"
 OBS_KEYS = ("rgb", "mask", "depth", "poses")
 ACTION_MODES = ("delta", "se3", "absolute")
 COLLISION_MODES = ("reject", "settle", "ignore")
@@ -41,7 +34,7 @@ _WORLD_CACHE: dict[str, WorldModel] = {}
 
 def load_default_world() -> WorldModel:
     """The bundled world (cached per process). If the asset is missing or unreadable this raises a
-    ValueError naming it (``dsg_gym`` never imports ``train_world``; README, "The bundled world", has the
+    ValueError naming it (``dsg_gym`` never imports ``train_world``; docs/environment.md, "The bundled world", has the
     commands that rebuild it)."""
     key = str(DEFAULT_WORLD)
     if key not in _WORLD_CACHE:
@@ -70,7 +63,9 @@ def _look_at(spec: Mapping[str, Any], width: int, height: int) -> tuple[np.ndarr
     """``(viewmat, K)`` of a look-at camera spec ``{eye, target[, up][, fovy_deg]}`` (checked)."""
     unknown = set(spec) - {"eye", "target", "up", "fovy_deg"}
     if unknown or "eye" not in spec or "target" not in spec:
-        raise ValueError(f"look-at camera spec needs 'eye' and 'target' (optional 'up', 'fovy_deg'); got {spec}")
+        raise ValueError(
+            f"look-at camera spec needs 'eye' and 'target' (optional 'up', 'fovy_deg'); got {spec}"
+        )
     eye = np.asarray(spec["eye"], dtype=np.float64)
     target = np.asarray(spec["target"], dtype=np.float64)
     up = np.asarray(spec.get("up", (0.0, 0.0, 1.0)), dtype=np.float64)
@@ -218,7 +213,9 @@ class DSGWorldEnv(gym.Env):
         if collision not in COLLISION_MODES:
             raise ValueError(f"collision must be one of {COLLISION_MODES}, got {collision!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}"
+            )
         for name, v in (("max_translation", max_translation), ("max_rotation", max_rotation)):
             if not np.isfinite(v) or v <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
@@ -237,7 +234,9 @@ class DSGWorldEnv(gym.Env):
                 raise ValueError(f"render_settings: unknown keys {sorted(bad)} (alpha_min, t_min, sh_degree)")
             render_settings = RenderSettings(**render_settings)
         elif not isinstance(render_settings, RenderSettings):
-            raise ValueError(f"render_settings must be a RenderSettings or a dict, got {type(render_settings).__name__}")
+            raise ValueError(
+                f"render_settings must be a RenderSettings or a dict, got {type(render_settings).__name__}"
+            )
         self.render_settings = render_settings
         if isinstance(task, Mapping):
             task = TaskParams(**task)
@@ -254,7 +253,11 @@ class DSGWorldEnv(gym.Env):
         self.max_episode_steps = max_episode_steps
         self.physics = PhysicsProxy(self.world)
         ref = next(iter(self.world.states.values()), None)
-        ref_q = matrix_to_pose7(ref)[:, 3:] if ref is not None else np.tile([1.0, 0, 0, 0], (self.world.num_objects, 1))
+        ref_q = (
+            matrix_to_pose7(ref)[:, 3:]
+            if ref is not None
+            else np.tile([1.0, 0, 0, 0], (self.world.num_objects, 1))
+        )
         self.task = RearrangementTask(self.physics, ref_q, task)
         self.K = self.world.num_objects
 
@@ -332,7 +335,9 @@ class DSGWorldEnv(gym.Env):
             ks = c.Ks.copy()
             ks[:, 0] *= sx
             ks[:, 1] *= sy
-            self._view_renderer = self._make_renderer(Cameras(c.viewmats, ks, self.render_width, self.render_height))
+            self._view_renderer = self._make_renderer(
+                Cameras(c.viewmats, ks, self.render_width, self.render_height)
+            )
         out = self._view_renderer.render(self._poses, rgb=True, mask=False, depth=False)
         return np.concatenate(list(out.rgb), axis=1)
 
@@ -340,7 +345,9 @@ class DSGWorldEnv(gym.Env):
     def _pose_option(self, name: str, value) -> np.ndarray:
         if isinstance(value, str):
             if value not in self.world.states:
-                raise ValueError(f"options[{name!r}]: unknown state {value!r}; this world has {sorted(self.world.states)}")
+                raise ValueError(
+                    f"options[{name!r}]: unknown state {value!r}; this world has {sorted(self.world.states)}"
+                )
             return matrix_to_pose7(self.world.states[value])
         return as_poses7(value, self.K, f"options[{name!r}]")
 

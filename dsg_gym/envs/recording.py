@@ -93,8 +93,9 @@ def load_episode(path) -> Episode:
             raise EpisodeFileError(f"{p}: not a readable .npz episode file ({e})") from None
     fps = data["fps"]
     if fps.shape != () or fps.dtype.kind not in "fiu":
-        raise EpisodeFileError(f"{p}: 'fps' must be a numeric scalar, got shape {fps.shape}, "
-                               f"dtype {fps.dtype}")
+        raise EpisodeFileError(
+            f"{p}: 'fps' must be a numeric scalar, got shape {fps.shape}, dtype {fps.dtype}"
+        )
     actions = data.get("actions")
     if actions is not None and actions.ndim != 2:
         raise EpisodeFileError(f"{p}: 'actions' must be [T-1, A], got shape {actions.shape}")
@@ -108,7 +109,9 @@ def env_poses(env: gym.Env) -> np.ndarray:
     """The current object poses ``[K, 7]`` (``x y z qw qx qy qz``) of a (wrapped) ``DSGWorldEnv``, a copy."""
     base = env.unwrapped
     if not hasattr(type(base), "poses"):
-        raise TypeError(f"RecordEpisode: {type(base).__name__} does not expose object poses (not a DSGWorldEnv?)")
+        raise TypeError(
+            f"RecordEpisode: {type(base).__name__} does not expose object poses (not a DSGWorldEnv?)"
+        )
     return np.array(base.poses, dtype=np.float64, copy=True)
 
 

@@ -56,7 +56,9 @@ class RearrangementTask:
         self.physics = physics
         self.params = TaskParams() if params is None else params
         self.k = physics.num_objects
-        self.reference_quats = quat_normalize(np.asarray(reference_quats, dtype=np.float64).reshape(self.k, 4))
+        self.reference_quats = quat_normalize(
+            np.asarray(reference_quats, dtype=np.float64).reshape(self.k, 4)
+        )
         self._goal_key: bytes | None = None  # cache of errors(): the last goal's bytes and unit quaternions
         self._goal_unit = np.zeros((self.k, 4))
 
@@ -73,7 +75,9 @@ class RearrangementTask:
             placed: list[tuple[float, float, float]] = []
             ok = True
             for k in rng.permutation(self.k):
-                q = quat_normalize(quat_multiply(yaw_to_quat(rng.uniform(-np.pi, np.pi)), self.reference_quats[k]))
+                q = quat_normalize(
+                    quat_multiply(yaw_to_quat(rng.uniform(-np.pi, np.pi)), self.reference_quats[k])
+                )
                 r, dz = self._radius_z(k, q)
                 lo_x, hi_x = t.xmin + p.margin + r, t.xmax - p.margin - r
                 lo_y, hi_y = t.ymin + p.margin + r, t.ymax - p.margin - r
@@ -117,10 +121,17 @@ class RearrangementTask:
 
     def success(self, poses: np.ndarray, goal: np.ndarray) -> bool:
         pe, re = self.errors(poses, goal)
-        return bool(np.all(pe <= self.params.position_tolerance) and np.all(re <= self.params.rotation_tolerance))
+        return bool(
+            np.all(pe <= self.params.position_tolerance) and np.all(re <= self.params.rotation_tolerance)
+        )
 
-    def reward(self, poses: np.ndarray, goal: np.ndarray, collided: bool,
-               errors: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, bool]:
+    def reward(
+        self,
+        poses: np.ndarray,
+        goal: np.ndarray,
+        collided: bool,
+        errors: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[float, bool]:
         """``(reward, success)`` of a step that ended at ``poses`` (``errors``: ``self.errors(poses, goal)``
         when the caller has it already)."""
         p = self.params

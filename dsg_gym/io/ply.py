@@ -168,7 +168,7 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
 
 def _numbered(names: set[str], prefix: str) -> int:
     """Count of properties ``prefix0..prefix{k-1}``; error (returns -1) if not contiguous."""
-    idx = sorted(int(n[len(prefix):]) for n in names if re.fullmatch(re.escape(prefix) + r"\d+", n))
+    idx = sorted(int(n[len(prefix) :]) for n in names if re.fullmatch(re.escape(prefix) + r"\d+", n))
     return len(idx) if idx == list(range(len(idx))) else -1
 
 

@@ -20,12 +20,27 @@ import importlib
 from ..sh_basis import C0, num_sh_bases
 from ..splat_options import RASTERIZE_MODES
 
-__all__ = ["rasterize", "spherical_harmonics", "num_sh_bases", "rgb_to_sh0", "sh0_to_rgb", "C0",
-           "BACKENDS", "RASTERIZE_MODES", "RENDER_MODES"]
+__all__ = [
+    "rasterize",
+    "spherical_harmonics",
+    "num_sh_bases",
+    "rgb_to_sh0",
+    "sh0_to_rgb",
+    "C0",
+    "BACKENDS",
+    "RASTERIZE_MODES",
+    "RENDER_MODES",
+]
 
 #: names that need torch, and the submodule that defines each (imported on first use)
-_LAZY = {"rasterize": ".rasterization", "BACKENDS": ".rasterization", "RENDER_MODES": ".rasterization",
-         "spherical_harmonics": ".sh", "rgb_to_sh0": ".sh", "sh0_to_rgb": ".sh"}
+_LAZY = {
+    "rasterize": ".rasterization",
+    "BACKENDS": ".rasterization",
+    "RENDER_MODES": ".rasterization",
+    "spherical_harmonics": ".sh",
+    "rgb_to_sh0": ".sh",
+    "sh0_to_rgb": ".sh",
+}
 
 
 def __getattr__(name: str):

@@ -5,13 +5,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from . import _torch_backend
 from . import numba_bins as binning
 from . import numba_project as projection
-from . import _torch_backend
 from . import numba_raster as raster
 from . import numba_raster_backward as raster_backward
 from . import numba_sh as sh_kernels
-
 
 _consts = raster.make_consts
 
@@ -33,9 +32,25 @@ class _Project(torch.autograd.Function):
         depths = torch.empty((C, N), dtype=dt)
         radii = torch.empty((C, N, 2), dtype=torch.int32)
         rects = torch.empty((C, N, 4), dtype=torch.int32)
-        projection.project_forward(m, q, s, _np(opacities), vm, K, float(width), float(height),
-                          float(near), float(far), means2d.numpy(), conics.numpy(), depths.numpy(),
-                          radii.numpy(), rects.numpy(), projection.ALPHA_MIN, float(eps2d))
+        projection.project_forward(
+            m,
+            q,
+            s,
+            _np(opacities),
+            vm,
+            K,
+            float(width),
+            float(height),
+            float(near),
+            float(far),
+            means2d.numpy(),
+            conics.numpy(),
+            depths.numpy(),
+            radii.numpy(),
+            rects.numpy(),
+            projection.ALPHA_MIN,
+            float(eps2d),
+        )
         ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii)
         ctx.size = (width, height)
         ctx.eps2d = float(eps2d)
@@ -56,12 +71,23 @@ class _Project(torch.autograd.Function):
         v_means = torch.empty((N, 3), dtype=dt)
         v_quats = torch.empty((N, 4), dtype=dt)
         v_scales = torch.empty((N, 3), dtype=dt)
-        projection.project_backward(_np(means), _np(quats), _np(scales),
-                           _np(viewmats).astype(np.float64, copy=False),
-                           _np(Ks).astype(np.float64, copy=False), float(width), float(height),
-                           radii.numpy(), grad_or_zeros(v_means2d, (C, N, 2)),
-                           grad_or_zeros(v_conics, (C, N, 3)), grad_or_zeros(v_depths, (C, N)),
-                           v_means.numpy(), v_quats.numpy(), v_scales.numpy(), ctx.eps2d)
+        projection.project_backward(
+            _np(means),
+            _np(quats),
+            _np(scales),
+            _np(viewmats).astype(np.float64, copy=False),
+            _np(Ks).astype(np.float64, copy=False),
+            float(width),
+            float(height),
+            radii.numpy(),
+            grad_or_zeros(v_means2d, (C, N, 2)),
+            grad_or_zeros(v_conics, (C, N, 3)),
+            grad_or_zeros(v_depths, (C, N)),
+            v_means.numpy(),
+            v_quats.numpy(),
+            v_scales.numpy(),
+            ctx.eps2d,
+        )
         return v_means, v_quats, v_scales, None, None, None, None, None, None, None, None
 
 
@@ -79,17 +105,42 @@ class _Composite(torch.autograd.Function):
         # sort is stable (equal depths keep index order): the result is deterministic.
         keys = d.view(np.uint32 if d.dtype == np.float32 else np.uint64)
         order, counts = binning.depth_order(keys, r)
-        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = binning.bin_gaussians(r, order, counts, tiles_x,
-                                                                               tiles_y)
+        tile_offsets, tile_gauss, gauss_offsets, gauss_pairs = binning.bin_gaussians(
+            r, order, counts, tiles_x, tiles_y
+        )
         out = torch.empty((C, height, width, D), dtype=dt)
         out_T = torch.empty((C, height, width), dtype=dt)
         m2 = _np(means2d)
         P = tile_gauss.shape[0]
-        pairs = (np.empty((P, 6), dtype=m2.dtype), np.empty((P, 4), dtype=r.dtype), np.empty((P, D), dtype=m2.dtype))
-        raster.gather_pairs(m2, _np(conics), _np(opacities), _np(colors), r, tile_offsets, tile_gauss, tiles_x, tiles_y,
-                       *pairs)
-        raster.composite_forward(*pairs, tile_offsets, tiles_x, tiles_y, width, height, _consts(m2.dtype),
-                            binning.balanced_order(C * tiles_x * tiles_y), out.numpy(), out_T.numpy())
+        pairs = (
+            np.empty((P, 6), dtype=m2.dtype),
+            np.empty((P, 4), dtype=r.dtype),
+            np.empty((P, D), dtype=m2.dtype),
+        )
+        raster.gather_pairs(
+            m2,
+            _np(conics),
+            _np(opacities),
+            _np(colors),
+            r,
+            tile_offsets,
+            tile_gauss,
+            tiles_x,
+            tiles_y,
+            *pairs,
+        )
+        raster.composite_forward(
+            *pairs,
+            tile_offsets,
+            tiles_x,
+            tiles_y,
+            width,
+            height,
+            _consts(m2.dtype),
+            binning.balanced_order(C * tiles_x * tiles_y),
+            out.numpy(),
+            out_T.numpy(),
+        )
         if backgrounds is not None:
             out += out_T[..., None] * backgrounds[:, None, None, :].detach()
         alphas = (1.0 - out_T)[..., None]
@@ -113,16 +164,37 @@ class _Composite(torch.autograd.Function):
             v_alphas = torch.zeros_like(out_T)[..., None]
         vo = _np(v_out)
         pair_grads = np.zeros((pairs[0].shape[0], D + 6), dtype=vo.dtype)
-        raster_backward.composite_backward(*pairs, tile_offsets, tiles_x, tiles_y, width, height,
-                                           _consts(out.numpy().dtype), binning.balanced_order(C * tiles_x * tiles_y),
-                                           out.numpy(), out_T.numpy(), vo, _np(v_alphas[..., 0]),
-                                           raster_backward.pair_slots(gauss_pairs), pair_grads)
+        raster_backward.composite_backward(
+            *pairs,
+            tile_offsets,
+            tiles_x,
+            tiles_y,
+            width,
+            height,
+            _consts(out.numpy().dtype),
+            binning.balanced_order(C * tiles_x * tiles_y),
+            out.numpy(),
+            out_T.numpy(),
+            vo,
+            _np(v_alphas[..., 0]),
+            raster_backward.pair_slots(gauss_pairs),
+            pair_grads,
+        )
         v_means2d = torch.empty((C, N, 2), dtype=dt)
         v_conics = torch.empty((C, N, 3), dtype=dt)
         v_colors = torch.empty(colors.shape, dtype=dt)
         v_opac = torch.empty(opacities.shape, dtype=dt)
-        raster_backward.reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d.numpy(), v_conics.numpy(),
-                                     v_colors.numpy(), v_opac.numpy())
+        raster_backward.reduce_pairs(
+            pair_grads,
+            gauss_offsets,
+            C,
+            N,
+            D,
+            v_means2d.numpy(),
+            v_conics.numpy(),
+            v_colors.numpy(),
+            v_opac.numpy(),
+        )
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[4]:
             v_bg = (v_out * out_T[..., None]).sum(dim=(1, 2))
@@ -180,8 +252,9 @@ class _SH(torch.autograd.Function):
         dirs, coeffs = ctx.saved_tensors
         v_dirs = torch.empty(dirs.shape, dtype=dirs.dtype)
         v_coeffs = torch.empty(coeffs.shape, dtype=coeffs.dtype)
-        sh_kernels.sh_backward(ctx.degree, _np(dirs), _np(coeffs), _np(v_out), v_dirs.numpy(),
-                               v_coeffs.numpy())
+        sh_kernels.sh_backward(
+            ctx.degree, _np(dirs), _np(coeffs), _np(v_out), v_dirs.numpy(), v_coeffs.numpy()
+        )
         return None, v_dirs, v_coeffs
 
 

@@ -7,7 +7,6 @@ every pixel of the tile (``tile_size=None`` evaluates every Gaussian on every pi
 
 from __future__ import annotations
 
-
 import torch
 
 from .numba_project import BLUR
@@ -21,11 +20,20 @@ def _quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
     q = torch.where(small, ident.expand_as(q), q)
     w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(quats.shape[:-1] + (3, 3))
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(quats.shape[:-1] + (3, 3))
 
 
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d=BLUR):
@@ -79,8 +87,9 @@ def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, 
         vis = vis & ~((x1 < 0) | (y1 < 0) | (x0 > width - 1) | (y0 > height - 1))
         radii = torch.stack([torch.ceil(ex), torch.ceil(ey)], -1).clamp(max=1e9)
         radii = torch.where(vis[..., None], radii, torch.zeros_like(radii)).to(torch.int32)
-        rects = torch.stack([x0.clamp(min=0), x1.clamp(max=width - 1),
-                             y0.clamp(min=0), y1.clamp(max=height - 1)], -1)
+        rects = torch.stack(
+            [x0.clamp(min=0), x1.clamp(max=width - 1), y0.clamp(min=0), y1.clamp(max=height - 1)], -1
+        )
         culled = torch.tensor([0.0, -1.0, 0.0, -1.0], dtype=rects.dtype, device=rects.device)
         rects = torch.where(vis[..., None], rects, culled).to(torch.int32)
     return means2d, conics, pz, radii, rects
@@ -97,8 +106,9 @@ def antialias(conics, opacities, eps2d=BLUR):
     return (opacities.double() * r).to(opacities.dtype)
 
 
-def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, width, height,
-              tile_size: int | None = 16):
+def composite(
+    means2d, conics, opacities, colors, depths, rects, backgrounds, width, height, tile_size: int | None = 16
+):
     """Front-to-back compositing; colors [Cc,N,D], opacities [Co,N]; returns
     (render_colors [C,H,W,D], render_alphas [C,H,W,1])."""
     C = means2d.shape[0]
@@ -124,17 +134,30 @@ def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, wi
                 y1 = min(y0 + ts_y, height) - 1
                 hit = (r[:, 0] <= x1) & (r[:, 1] >= x0) & (r[:, 2] <= y1) & (r[:, 3] >= y0)
                 g = idx[hit]
-                ys, xs = torch.meshgrid(torch.arange(y0, y1 + 1, device=dev, dtype=dt),
-                                        torch.arange(x0, x1 + 1, device=dev, dtype=dt), indexing="ij")
+                ys, xs = torch.meshgrid(
+                    torch.arange(y0, y1 + 1, device=dev, dtype=dt),
+                    torch.arange(x0, x1 + 1, device=dev, dtype=dt),
+                    indexing="ij",
+                )
                 pix = torch.stack([xs.reshape(-1) + 0.5, ys.reshape(-1) + 0.5], -1)  # [P,2]
                 if g.numel() == 0:
-                    tiles.append((x0, x1, y0, y1, torch.zeros(pix.shape[0], D, dtype=dt, device=dev),
-                                  torch.zeros(pix.shape[0], dtype=dt, device=dev)))
+                    tiles.append(
+                        (
+                            x0,
+                            x1,
+                            y0,
+                            y1,
+                            torch.zeros(pix.shape[0], D, dtype=dt, device=dev),
+                            torch.zeros(pix.shape[0], dtype=dt, device=dev),
+                        )
+                    )
                     continue
                 d = pix[:, None, :] - means2d[c, g][None]  # [P,G,2]
                 cn = conics[c, g]
-                sigma = (0.5 * (cn[:, 0] * d[..., 0] ** 2 + cn[:, 2] * d[..., 1] ** 2)
-                         + cn[:, 1] * d[..., 0] * d[..., 1])
+                sigma = (
+                    0.5 * (cn[:, 0] * d[..., 0] ** 2 + cn[:, 2] * d[..., 1] ** 2)
+                    + cn[:, 1] * d[..., 0] * d[..., 1]
+                )
                 alpha = torch.clamp(op_c[g] * torch.exp(-sigma), max=ALPHA_MAX)
                 alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
                 with torch.no_grad():

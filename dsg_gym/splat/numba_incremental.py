@@ -16,8 +16,17 @@ import numpy as np
 
 from .numba_bins import depth_order
 from .numba_intrinsics import borrow
-from .numba_raster import (FASTMATH, TILE, reset_tile, sigma_cutoff, span_rows, splat_forward, splat_rows, store_tile,
-                            tile_state)
+from .numba_raster import (
+    FASTMATH,
+    TILE,
+    reset_tile,
+    sigma_cutoff,
+    span_rows,
+    splat_forward,
+    splat_rows,
+    store_tile,
+    tile_state,
+)
 from .numba_sh import sh_basis
 
 _TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS

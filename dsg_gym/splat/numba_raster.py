@@ -162,8 +162,29 @@ def _blend_row(consts, todo, ly, dy, u, ca, cb, cc_, o, smax, col, xc, acc, tran
 
 
 @nb.njit(cache=True, inline="always", fastmath=FASTMATH)
-def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1, col, px0, py0, pw, ph,
-                  xc, yc, acc, trans, row_done):
+def splat_forward(
+    consts,
+    u,
+    v,
+    conic_a,
+    conic_b,
+    conic_c,
+    o,
+    rx0,
+    rx1,
+    ry0,
+    ry1,
+    col,
+    px0,
+    py0,
+    pw,
+    ph,
+    xc,
+    yc,
+    acc,
+    trans,
+    row_done,
+):
     """Composite one Gaussian into a tile's accumulators; returns how many pixels it finished.
 
     Every forward kernel calls it (or :func:`splat_rows`, the same with precomputed spans), so that
@@ -195,7 +216,9 @@ def splat_forward(consts, u, v, conic_a, conic_b, conic_c, o, rx0, rx1, ry0, ry1
         todo = column_bits(x0, x1) & ~row_done[ly]  # the span's unfinished pixels
         if todo == 0:
             continue
-        finished += _blend_row(consts, todo, ly, dy, u, ca, conic_b, cc_, o, smax, col, xc, acc, trans, row_done)
+        finished += _blend_row(
+            consts, todo, ly, dy, u, ca, conic_b, cc_, o, smax, col, xc, acc, trans, row_done
+        )
     return finished
 
 
@@ -228,8 +251,27 @@ def sigma_cutoff(consts, o):
 
 
 @nb.njit(cache=True, inline="always", fastmath=FASTMATH)
-def splat_rows(consts, u, v, conic_a, conic_b, conic_c, o, ry0, ry1, rows, col, py0, ph, xc, yc, acc, trans,
-               row_done, smax=np.nan):
+def splat_rows(
+    consts,
+    u,
+    v,
+    conic_a,
+    conic_b,
+    conic_c,
+    o,
+    ry0,
+    ry1,
+    rows,
+    col,
+    py0,
+    ph,
+    xc,
+    yc,
+    acc,
+    trans,
+    row_done,
+    smax=np.nan,
+):
     """:func:`splat_forward` with the row spans given (``rows`` from :func:`span_rows`): visits the same
     pixels in the same order with the same arithmetic, so the result is the same bit for bit; returns how
     many pixels it finished. ``smax``: the Gaussian's :func:`sigma_cutoff` when the caller has it (NaN:
@@ -245,14 +287,18 @@ def splat_rows(consts, u, v, conic_a, conic_b, conic_c, o, ry0, ry1, rows, col, 
         todo = np.int64(rows[ly]) & ~row_done[ly]
         if todo == 0:
             continue
-        if not ready:  # set up on the first row with work: Gaussians hidden behind finished pixels cost no log
+        if (
+            not ready
+        ):  # set up on the first row with work: Gaussians hidden behind finished pixels cost no log
             ready = True
             ca = conic_a * half
             cc_ = conic_c * half
             if smax != smax:
                 smax = sigma_cutoff(consts, o)
         dy = yc[ly] - v
-        finished += _blend_row(consts, todo, ly, dy, u, ca, conic_b, cc_, o, smax, col, xc, acc, trans, row_done)
+        finished += _blend_row(
+            consts, todo, ly, dy, u, ca, conic_b, cc_, o, smax, col, xc, acc, trans, row_done
+        )
     return finished
 
 
@@ -301,8 +347,20 @@ def store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T):
 
 
 @nb.njit(parallel=True, cache=True)
-def gather_pairs(means2d, conics, opacities, colors, rects, tile_offsets, tile_gauss, tiles_x, tiles_y,
-                 pair_f, pair_r, pair_col):
+def gather_pairs(
+    means2d,
+    conics,
+    opacities,
+    colors,
+    rects,
+    tile_offsets,
+    tile_gauss,
+    tiles_x,
+    tiles_y,
+    pair_f,
+    pair_r,
+    pair_col,
+):
     """Copy each (tile, Gaussian) pair's inputs into pair order, so that the compositing kernels read them
     sequentially: looked up per pair inside the compositing loop, they cost a cache miss each (a third of the
     forward time on a 60k-Gaussian field at 128x128).
@@ -336,8 +394,20 @@ def gather_pairs(means2d, conics, opacities, colors, rects, tile_offsets, tile_g
 
 
 @nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
-def composite_forward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y, width, height, consts, tile_order,
-                      out_colors, out_T):
+def composite_forward(
+    pair_f,
+    pair_r,
+    pair_col,
+    tile_offsets,
+    tiles_x,
+    tiles_y,
+    width,
+    height,
+    consts,
+    tile_order,
+    out_colors,
+    out_T,
+):
     """Front-to-back compositing of C cameras' tiles.
 
     pair_f [P,6], pair_r [P,4], pair_col [P,D] from ``gather_pairs`` (each tile's pairs front to back),
@@ -351,13 +421,34 @@ def composite_forward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y, 
         ct = tile_order[m]
         c = ct // T
         px0, py0, pw, ph, acc, trans, row_done, xc, yc = tile_state(
-            ct - c * T, tiles_x, width, height, D, out_colors.dtype)
+            ct - c * T, tiles_x, width, height, D, out_colors.dtype
+        )
         npix = pw * ph
         ndone = 0
         for s in range(tile_offsets[ct], tile_offsets[ct + 1]):
             if ndone == npix:
                 break
-            ndone += splat_forward(consts, pair_f[s, 0], pair_f[s, 1], pair_f[s, 2], pair_f[s, 3], pair_f[s, 4],
-                                   pair_f[s, 5], pair_r[s, 0], pair_r[s, 1], pair_r[s, 2], pair_r[s, 3],
-                                   pair_col[s], px0, py0, pw, ph, xc, yc, acc, trans, row_done)
+            ndone += splat_forward(
+                consts,
+                pair_f[s, 0],
+                pair_f[s, 1],
+                pair_f[s, 2],
+                pair_f[s, 3],
+                pair_f[s, 4],
+                pair_f[s, 5],
+                pair_r[s, 0],
+                pair_r[s, 1],
+                pair_r[s, 2],
+                pair_r[s, 3],
+                pair_col[s],
+                px0,
+                py0,
+                pw,
+                ph,
+                xc,
+                yc,
+                acc,
+                trans,
+                row_done,
+            )
         store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)

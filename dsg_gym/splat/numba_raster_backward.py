@@ -12,12 +12,20 @@ bit.
 
 from __future__ import annotations
 
-
 import numba as nb
 import numpy as np
 
-from .numba_raster import (FASTMATH, TILE, column_bits, log_opacity_ratio, pixel_step, pop_lowest_bit,
-                           row_pixel_range, rows_finished, sigma_cutoff_from_log)
+from .numba_raster import (
+    FASTMATH,
+    TILE,
+    column_bits,
+    log_opacity_ratio,
+    pixel_step,
+    pop_lowest_bit,
+    row_pixel_range,
+    rows_finished,
+    sigma_cutoff_from_log,
+)
 
 __all__ = ["composite_backward", "pair_slots", "reduce_pairs"]
 
@@ -32,8 +40,24 @@ def _dot(a, b, n):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
-def composite_backward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y, width, height, consts,
-                       tile_order, out_colors, out_T, v_colors, v_alphas, pair_slot, pair_grads):
+def composite_backward(
+    pair_f,
+    pair_r,
+    pair_col,
+    tile_offsets,
+    tiles_x,
+    tiles_y,
+    width,
+    height,
+    consts,
+    tile_order,
+    out_colors,
+    out_T,
+    v_colors,
+    v_alphas,
+    pair_slot,
+    pair_grads,
+):
     """Per-(tile, Gaussian) gradients.
 
     pair_f, pair_r, pair_col, tile_offsets as for ``composite_forward``; out_colors [C,H,W,D] are the final
@@ -122,7 +146,9 @@ def composite_backward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y,
                 x0, x1 = row_pixel_range(pair_f[s, 2], cb, pair_f[s, 4], u, dyd, logo, xr0, xr1, px0)
                 if x1 < x0:
                     continue
-                todo = column_bits(x0, x1) & ~row_done[ly]  # the span's unfinished pixels, as in the forward pass
+                todo = (
+                    column_bits(x0, x1) & ~row_done[ly]
+                )  # the span's unfinished pixels, as in the forward pass
                 if todo == 0:
                     continue
                 bdy = cb * dy
@@ -132,7 +158,9 @@ def composite_backward(pair_f, pair_r, pair_col, tile_offsets, tiles_x, tiles_y,
                     p = ly * TILE + lx
                     dx = xc[lx] - u
                     tp = trans[p]
-                    code, alpha, gauss, nt = pixel_step(consts, ca, bdy, cdy, dx, o, smax, tp, row_done, ly, lx)
+                    code, alpha, gauss, nt = pixel_step(
+                        consts, ca, bdy, cdy, dx, o, smax, tp, row_done, ly, lx
+                    )
                     if code < 2:
                         ndone += code
                         continue

@@ -7,9 +7,9 @@ from typing import Any
 
 import torch
 
+from ..splat_options import DEFAULT_EPS2D, RASTERIZE_MODES, check_splat_options  # noqa: F401  (re-exported)
 from . import _numba_backend, _torch_backend
 from .finite import first_nonfinite
-from ..splat_options import DEFAULT_EPS2D, RASTERIZE_MODES, check_splat_options  # noqa: F401  (re-exported)
 from .sh import _spherical_harmonics_torch, num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
@@ -85,7 +85,7 @@ def rasterize(
         backend: "auto" (numba on CPU, torch elsewhere), "numba" or "torch" (reference).
         rasterize_mode: "classic" (3DGS) or "antialiased" (gsplat's name for Mip-Splatting's 2D Mip
             filter): each Gaussian's opacity per camera is multiplied by
-            ``sqrt(det Sigma2d / det(Sigma2d + 0.3 I))``, so the low-pass keeps its integrated weight
+            ``sqrt(det Sigma2d / det(Sigma2d + eps2d I))``, so the low-pass keeps its integrated weight
             instead of inflating sub-pixel Gaussians; scenes trained this way render correctly when the
             scale changes (objects moved nearer or farther, other resolutions).
         eps2d: the low-pass, in px^2, added to each projected 2D covariance's diagonal (3DGS and gsplat:
@@ -128,8 +128,14 @@ def rasterize(
         raise ValueError("scales must be non-negative (linear, post-activation)")
     if bool((Ks[:, 0, 0] <= 0).any() or (Ks[:, 1, 1] <= 0).any()):
         raise ValueError("Ks must have positive focal lengths")
-    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities),
-                    ("colors", colors), ("viewmats", viewmats), ("Ks", Ks)):
+    for name, t in (
+        ("quats", quats),
+        ("scales", scales),
+        ("opacities", opacities),
+        ("colors", colors),
+        ("viewmats", viewmats),
+        ("Ks", Ks),
+    ):
         if isinstance(t, torch.Tensor) and t.device != means.device:
             raise ValueError(f"{name} is on {t.device}, means on {means.device}")
 
@@ -149,7 +155,9 @@ def rasterize(
             raise ValueError(f"colors has {colors.shape[-2]} SH bases, sh_degree {sh_degree} needs {k}")
         campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C,3]
         dirs = means[None, :, :] - campos[:, None, :]
-        sh_fn = _spherical_harmonics_torch if backend == "torch" else spherical_harmonics  # the reference stays torch
+        sh_fn = (
+            _spherical_harmonics_torch if backend == "torch" else spherical_harmonics
+        )  # the reference stays torch
         cols = torch.clamp_min(sh_fn(sh_degree, dirs, colors) + 0.5, 0.0)
         if cols.dim() == 2:
             cols = cols[None]
@@ -171,7 +179,8 @@ def rasterize(
 
     opac2 = opacities if opacities.dim() == 2 else opacities[None]
     means2d, conics, depths, radii, rects = impl.project(
-        means, quats, scales, opac2, viewmats, Ks, width, height, near_plane, far_plane, float(eps2d))
+        means, quats, scales, opac2, viewmats, Ks, width, height, near_plane, far_plane, float(eps2d)
+    )
 
     if rasterize_mode == "antialiased":
         opac2 = impl.antialias(conics, opac2, float(eps2d))
@@ -185,7 +194,8 @@ def rasterize(
         raise ValueError(f"colors has {feats.shape[0]} cameras, viewmats {C}")
     feats = feats.contiguous()
     render_colors, render_alphas = impl.composite(
-        means2d, conics, opac2.contiguous(), feats, depths, rects, backgrounds, width, height)
+        means2d, conics, opac2.contiguous(), feats, depths, rects, backgrounds, width, height
+    )
     if render_mode.endswith("ED"):
         depth = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
         render_colors = torch.cat([render_colors[..., :-1], depth], dim=-1)

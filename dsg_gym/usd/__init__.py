@@ -1,5 +1,5 @@
 """USD export of Gaussian worlds and episodes (``export_stage``) and the matching reader
-(``read_stage``); see ``dsg_gym.usd.stage`` for the stage layout and README "USD export"."""
+(``read_stage``); see ``dsg_gym.usd.stage`` for the stage layout and docs/usd.md."""
 
 from dsg_gym.usd.cameras import UsdCamera, cameras_from_arrays
 from dsg_gym.usd.episode import Episode, EpisodeRecorder

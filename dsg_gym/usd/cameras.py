@@ -35,8 +35,16 @@ from pxr import Gf, Sdf, Usd, UsdGeom
 from dsg_gym.poses import check_rigid, rigid_inverse
 from dsg_gym.usd.transforms import from_gf_matrix, to_gf_matrix
 
-__all__ = ["SENSOR_WIDTH_MM", "UsdCamera", "cameras_from_arrays", "check_camera", "write_camera",
-           "read_camera", "usd_lens_from_K", "K_from_usd_lens"]
+__all__ = [
+    "SENSOR_WIDTH_MM",
+    "UsdCamera",
+    "cameras_from_arrays",
+    "check_camera",
+    "write_camera",
+    "read_camera",
+    "usd_lens_from_K",
+    "K_from_usd_lens",
+]
 
 SENSOR_WIDTH_MM = 20.955
 _FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -55,15 +63,23 @@ class UsdCamera:
     clipping_range: tuple[float, float] = (0.01, 100.0)
 
 
-def cameras_from_arrays(viewmats, Ks, width: int, height: int, prefix: str = "cam",  # noqa: N803
-                        clipping_range: tuple[float, float] = (0.01, 100.0)) -> list[UsdCamera]:
+def cameras_from_arrays(
+    viewmats,
+    Ks,
+    width: int,
+    height: int,
+    prefix: str = "cam",  # noqa: N803
+    clipping_range: tuple[float, float] = (0.01, 100.0),
+) -> list[UsdCamera]:
     """``UsdCamera`` list named ``{prefix}_{i:03d}`` from batched ``viewmats [V, 4, 4]`` and
     ``Ks [V, 3, 3]`` sharing one image size (e.g. a world's capture cameras)."""
     viewmats, Ks = np.asarray(viewmats, np.float64), np.asarray(Ks, np.float64)  # noqa: N806
     if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4) or Ks.shape != (viewmats.shape[0], 3, 3):
         raise ValueError(f"cameras_from_arrays: bad shapes viewmats {viewmats.shape}, Ks {Ks.shape}")
-    return [UsdCamera(f"{prefix}_{i:03d}", v, k, int(width), int(height), clipping_range)
-            for i, (v, k) in enumerate(zip(viewmats, Ks))]
+    return [
+        UsdCamera(f"{prefix}_{i:03d}", v, k, int(width), int(height), clipping_range)
+        for i, (v, k) in enumerate(zip(viewmats, Ks))
+    ]
 
 
 def check_camera(cam: UsdCamera) -> tuple[np.ndarray, np.ndarray]:
@@ -135,7 +151,7 @@ def write_camera(
     return usd_cam
 
 
-def read_camera(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> UsdCamera:
+def read_camera(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> UsdCamera:  # noqa: B008  (an immutable value)
     """A ``UsdCamera`` from a camera prim written by ``write_camera`` (world transform included)."""
     usd_cam = UsdGeom.Camera(prim)
     if not usd_cam:
@@ -146,8 +162,13 @@ def read_camera(prim: Usd.Prim, time: Usd.TimeCode = Usd.TimeCode.Default()) -> 
     width, height = int(width), int(height)
     c2w_gl = from_gf_matrix(usd_cam.ComputeLocalToWorldTransform(time))
     viewmat = rigid_inverse(c2w_gl @ _FLIP_YZ)
-    names = ("focalLength", "horizontalAperture", "verticalAperture",
-             "horizontalApertureOffset", "verticalApertureOffset")
+    names = (
+        "focalLength",
+        "horizontalAperture",
+        "verticalAperture",
+        "horizontalApertureOffset",
+        "verticalApertureOffset",
+    )
     lens = {n: float(prim.GetAttribute(n).Get(time)) for n in names}
     near, far = usd_cam.GetClippingRangeAttr().Get(time)
     return UsdCamera(

@@ -24,8 +24,9 @@ def box_mesh(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned box ``[lo, hi]`` as ``(points [8, 3] float64, triangles [12, 3] int32)``,
     counter-clockwise seen from outside."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    pts = np.array([[(hi if b else lo)[i] for i, b in enumerate(bits)]
-                    for bits in itertools.product((0, 1), repeat=3)])
+    pts = np.array(
+        [[(hi if b else lo)[i] for i, b in enumerate(bits)] for bits in itertools.product((0, 1), repeat=3)]
+    )
     return _hull(pts) or (pts, np.zeros((0, 3), np.int32))
 
 

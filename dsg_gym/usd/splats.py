@@ -34,8 +34,14 @@ from dsg_gym.gaussians import GaussianSet
 from dsg_gym.poses import quat_to_rotmat
 from dsg_gym.usd.transforms import usd_to_wxyz, wxyz_to_usd
 
-__all__ = ["FEATURES_PRIMVAR", "LABELS_PRIMVAR", "EXTENT_SIGMAS", "write_splats", "read_splats",
-           "splat_extent"]
+__all__ = [
+    "FEATURES_PRIMVAR",
+    "LABELS_PRIMVAR",
+    "EXTENT_SIGMAS",
+    "write_splats",
+    "read_splats",
+    "splat_extent",
+]
 
 FEATURES_PRIMVAR = "dsg:features"
 LABELS_PRIMVAR = "dsg:labels"
@@ -126,9 +132,7 @@ def read_splats(prim: Usd.Prim) -> GaussianSet:
     else:
         features = np.zeros((n, 0), np.float32)
     label_pv = pv.GetPrimvar(LABELS_PRIMVAR)
-    labels = (
-        np.array(label_pv.Get(), dtype=np.int32) if label_pv and label_pv.HasAuthoredValue() else None
-    )
+    labels = np.array(label_pv.Get(), dtype=np.int32) if label_pv and label_pv.HasAuthoredValue() else None
     try:
         return GaussianSet(means, quats, scales, opacities, sh, features, labels)
     except ValueError as err:

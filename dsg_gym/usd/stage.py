@@ -48,8 +48,17 @@ from dsg_gym.usd.collider import MIN_THICKNESS_M, box_mesh, convex_hull_mesh, wr
 from dsg_gym.usd.episode import Episode
 from dsg_gym.usd.splats import read_splats, write_splats
 
-__all__ = ["UsdObject", "StageObject", "StageContents", "export_stage", "read_stage", "SUFFIXES",
-           "GRAVITY_M_S2", "TABLE_THICKNESS_M", "FORMAT_VERSION"]
+__all__ = [
+    "UsdObject",
+    "StageObject",
+    "StageContents",
+    "export_stage",
+    "read_stage",
+    "SUFFIXES",
+    "GRAVITY_M_S2",
+    "TABLE_THICKNESS_M",
+    "FORMAT_VERSION",
+]
 
 SUFFIXES = (".usdc", ".usda")
 GRAVITY_M_S2 = 9.81
@@ -153,7 +162,7 @@ def _check_objects(objects: Sequence[UsdObject]) -> list[np.ndarray]:
 # ---------------------------------------------------------------------------------------- writing
 
 
-def _set_pose(translate_op, orient_op, pose: np.ndarray, quat: np.ndarray, time=Usd.TimeCode.Default()):
+def _set_pose(translate_op, orient_op, pose: np.ndarray, quat: np.ndarray, time=Usd.TimeCode.Default()):  # noqa: B008  (an immutable value)
     translate_op.Set(Gf.Vec3d(*(float(x) for x in pose[:3, 3])), time)
     orient_op.Set(Gf.Quatd(float(quat[0]), Gf.Vec3d(float(quat[1]), float(quat[2]), float(quat[3]))), time)
 
@@ -176,8 +185,9 @@ def _build(stage: Usd.Stage, background, objects, poses, cameras, mpu, up_axis, 
     objects_path = WORLD.AppendChild("Objects")
     UsdGeom.Scope.Define(stage, objects_path)
     ops = []
-    for i, (obj, prim_name, pose) in enumerate(zip(objects, _prim_names("object", [o.name for o in objects]),
-                                                   poses)):
+    for i, (obj, prim_name, pose) in enumerate(
+        zip(objects, _prim_names("object", [o.name for o in objects]), poses)
+    ):
         path = objects_path.AppendChild(prim_name)
         xf = UsdGeom.Xform.Define(stage, path)
         translate_op = xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
@@ -341,8 +351,12 @@ def _read_episode(stage: Usd.Stage, object_prims: list[Usd.Prim], length: int) -
     action_attr = world.GetAttribute("dsg:episode:action")
     if action_attr and action_attr.GetNumTimeSamples():
         shape = tuple(int(s) for s in (action_attr.GetCustomDataByKey("dsg:shape") or ()))
-        actions = np.stack([np.array(action_attr.Get(Usd.TimeCode(float(t + 1))), np.float64).reshape(shape)
-                            for t in range(t_count - 1)])
+        actions = np.stack(
+            [
+                np.array(action_attr.Get(Usd.TimeCode(float(t + 1))), np.float64).reshape(shape)
+                for t in range(t_count - 1)
+            ]
+        )
     return Episode(stage.GetTimeCodesPerSecond(), poses, rewards, actions)
 
 

@@ -51,11 +51,13 @@ def validate_stage(stage_or_path: Usd.Stage | str | Path) -> list[ValidationIssu
         for site in err.GetSites():
             if site.IsPrim() or site.IsProperty():
                 sites.append(str(site.GetPrim().GetPath() if site.IsPrim() else site.GetProperty().GetPath()))
-        issues.append(ValidationIssue(
-            severity=str(err.GetType().name),
-            validator=validator.GetMetadata().name if validator else "?",
-            name=str(err.GetName()),
-            message=err.GetMessage(),
-            sites=tuple(sites),
-        ))
+        issues.append(
+            ValidationIssue(
+                severity=str(err.GetType().name),
+                validator=validator.GetMetadata().name if validator else "?",
+                name=str(err.GetName()),
+                message=err.GetMessage(),
+                sites=tuple(sites),
+            )
+        )
     return issues

@@ -17,9 +17,9 @@ from collections.abc import Iterator, Mapping
 import numpy as np
 import torch
 
+from benchmarks.splat_scenes import intrinsics
 from dsg_gym import poses as P
 from dsg_gym.splat import rasterize
-from benchmarks.splat_scenes import intrinsics
 
 LD = np.longdouble
 #: whether ``np.longdouble`` really is more precise than float64 here (it is not on e.g. macOS arm64)

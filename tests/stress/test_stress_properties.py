@@ -20,10 +20,10 @@ from _stress_ref import quat_error
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from benchmarks.splat_scenes import intrinsics
 from dsg_gym import geometry as G
 from dsg_gym import poses as P
 from dsg_gym.splat import rasterize
-from benchmarks.splat_scenes import intrinsics
 
 
 def profile(n: int):

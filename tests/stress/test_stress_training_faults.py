@@ -46,7 +46,7 @@ def good_run(data, tmp_path_factory):
     folder = tmp_path_factory.mktemp("good")
     t = Trainer(data, _config(), checkpoint=folder / "run.ckpt")
     t.train(progress=False, stop_after=EVERY)
-    world = t.write_world(folder / "run.dsgw")
+    world = t.write_world(folder / "run.dsgworld")
     return t, folder / "run.ckpt", world
 
 
@@ -71,7 +71,7 @@ def _poison_once(grad: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("target", ["means", "classifier.weight"])
 def test_nan_gradient_stops_cleanly_and_the_last_good_state_survives(data, tmp_path, target):
-    ckpt, world = tmp_path / "t.ckpt", tmp_path / "t.dsgw"
+    ckpt, world = tmp_path / "t.ckpt", tmp_path / "t.dsgworld"
     t = Trainer(data, _config(), checkpoint=ckpt)
     t.train(progress=False, stop_after=EVERY)
     t.write_world(world)
@@ -93,7 +93,7 @@ def test_nan_gradient_stops_cleanly_and_the_last_good_state_survives(data, tmp_p
     resumed.train(progress=False)
     assert resumed.step == STEPS
     assert all(bool(torch.isfinite(v).all()) for v in _params(resumed).values())
-    assert load_world(resumed.write_world(tmp_path / "done.dsgw")).metadata["iterations"] == STEPS
+    assert load_world(resumed.write_world(tmp_path / "done.dsgworld")).metadata["iterations"] == STEPS
 
 
 def _cuts(blob: bytes) -> list[int]:
@@ -137,14 +137,14 @@ def test_truncated_checkpoints_are_refused_and_the_good_one_still_loads(data, go
 
 def test_cli_resume_from_a_truncated_checkpoint_fails_with_a_clear_error(capture, good_run, tmp_path, capsys):
     _, ckpt, _ = good_run
-    bad = tmp_path / "w.dsgw.ckpt"
+    bad = tmp_path / "w.dsgworld.ckpt"
     bad.write_bytes(ckpt.read_bytes()[:1000])
-    argv = [str(capture), "--out", str(tmp_path / "w.dsgw"), "--preset", "quick", "--iterations", str(STEPS),
+    argv = [str(capture), "--out", str(tmp_path / "w.dsgworld"), "--preset", "quick", "--iterations", str(STEPS),
             "--single-state", "--seed", "5", "--resume", "--quiet"]  # fmt: skip
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
-    assert "error:" in err and "w.dsgw.ckpt" in err and "truncated" in err
-    assert not (tmp_path / "w.dsgw").exists()  # no world from a failed run
+    assert "error:" in err and "w.dsgworld.ckpt" in err and "truncated" in err
+    assert not (tmp_path / "w.dsgworld").exists()  # no world from a failed run
 
 
 def test_interrupted_checkpoint_write_keeps_the_previous_checkpoint(good_run, monkeypatch):
@@ -161,5 +161,5 @@ def test_interrupted_checkpoint_write_keeps_the_previous_checkpoint(good_run, mo
         trained.write_world(world)
     monkeypatch.undo()
     assert ckpt.read_bytes() == blob
-    assert sorted(p.name for p in ckpt.parent.iterdir()) == ["run.ckpt", "run.dsgw"]  # no temp files left
+    assert sorted(p.name for p in ckpt.parent.iterdir()) == ["run.ckpt", "run.dsgworld"]  # no temp files left
     assert load_checkpoint(ckpt)[1]["step"] == EVERY and load_world(world).metadata["iterations"] == EVERY

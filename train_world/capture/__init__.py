@@ -1,5 +1,5 @@
 """Captures on disk: the layout (:mod:`.format`), camera conventions (:mod:`.cameras`) and loading
-(:mod:`.loader`). See README "Capture format on disk"."""
+(:mod:`.loader`). See docs/captures.md."""
 
 from train_world.capture.loader import (
     Capture,

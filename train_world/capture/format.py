@@ -1,4 +1,4 @@
-"""Writing the capture layout on disk (used by ``dsg-synth`` and ``dsg-import``); see README "Capture format".
+"""Writing the capture layout on disk (used by ``dsg-synth`` and ``dsg-import``); see docs/captures.md.
 
 ::
 

@@ -208,7 +208,7 @@ def import_llff(
     sx, sy = w / ww, h / hh
     if abs(sx - sy) > 0.01 * max(sx, sy):
         raise CaptureError(
-            f"{images[0]}: image size {w}x{h} is not a uniform scaling of the poses' " f"{int(ww)}x{int(hh)}"
+            f"{images[0]}: image size {w}x{h} is not a uniform scaling of the poses' {int(ww)}x{int(hh)}"
         )
     f = float(ff) * sx
     mask_dir = src / f"masks{suffix}"

@@ -1,7 +1,7 @@
 """Loading captures (synthetic or real) into tensors for training and evaluation.
 
 A capture folder holds ``scene.json`` and one folder per state with a ``transforms.json`` (see
-:mod:`train_world.capture.format` and the README). :func:`load_views` reads one ``transforms.json`` (ours,
+:mod:`train_world.capture.format` and docs/captures.md). :func:`load_views` reads one ``transforms.json`` (ours,
 nerfstudio's or NeRF-Blender's); :func:`load_capture` reads a whole capture; :func:`load_blender` reads a
 NeRF-Blender split (RGBA composited over a background colour).
 
@@ -191,8 +191,7 @@ def load_views(
     frames = meta["frames"]
     if expected_count is not None and len(frames) != expected_count:
         raise CaptureError(
-            f"{tj}: camera count mismatch: {len(frames)} frames but scene.json says "
-            f"{expected_count} views"
+            f"{tj}: camera count mismatch: {len(frames)} frames but scene.json says {expected_count} views"
         )
     if max_views is not None:
         frames = frames[:max_views]
@@ -238,7 +237,12 @@ def load_views(
                 raise CaptureError(f"{where}: has no mask_path but other frames do (mask count mismatch)")
             masks.append(
                 read_mask(
-                    _resolve(base, fr["mask_path"], None, root, where, "mask_path"), ipath, (full_w, full_h), (w, h), downscale, ids
+                    _resolve(base, fr["mask_path"], None, root, where, "mask_path"),
+                    ipath,
+                    (full_w, full_h),
+                    (w, h),
+                    downscale,
+                    ids,
                 )
             )
         if with_depth:

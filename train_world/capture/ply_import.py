@@ -42,8 +42,15 @@ __all__ = ["world_from_ply", "orbit_cameras", "world_from_model", "ROLES"]
 ROLES = ("background", "object")
 
 
-def orbit_cameras(means: np.ndarray, *, num_views: int = 16, width: int = 256, height: int = 256,
-                  fovy_deg: float = 60.0, up=None) -> Cameras:
+def orbit_cameras(
+    means: np.ndarray,
+    *,
+    num_views: int = 16,
+    width: int = 256,
+    height: int = 256,
+    fovy_deg: float = 60.0,
+    up=None,
+) -> Cameras:
     """``num_views`` cameras on two rings (20 and 45 degrees elevation) around the robust bounding box of
     ``means`` (1st..99th percentile), all looking at its centre from a distance at which the box's bounding
     sphere fills the vertical field of view. ``up``: the world's up axis, default the direction of least
@@ -67,8 +74,11 @@ def orbit_cameras(means: np.ndarray, *, num_views: int = 16, width: int = 256, h
     up = np.asarray(up, dtype=np.float64)
     dist = 1.05 * radius / math.sin(math.radians(0.5 * fovy_deg))
     eyes = orbit_eyes(centre, up, dist, (math.radians(20.0), math.radians(45.0)), num_views)
-    vm = look_at_viewmat(torch.tensor(eyes, dtype=torch.float64), torch.tensor(centre, dtype=torch.float64)[None],
-                         torch.tensor(up / np.linalg.norm(up), dtype=torch.float64)[None]).numpy()
+    vm = look_at_viewmat(
+        torch.tensor(eyes, dtype=torch.float64),
+        torch.tensor(centre, dtype=torch.float64)[None],
+        torch.tensor(up / np.linalg.norm(up), dtype=torch.float64)[None],
+    ).numpy()
     K = intrinsics_from_fov(math.radians(fovy_deg), width, height, dtype=torch.float64).numpy()  # noqa: N806
     return Cameras(vm.astype(np.float32), np.repeat(K[None], num_views, 0).astype(np.float32), width, height)
 
@@ -81,15 +91,18 @@ def world_from_model(wm: WorldModel, units: str = "metres") -> World:
     c = wm.cameras
     return World(
         background=wm.background,
-        objects=MappingProxyType({oid: WorldObject(n, g)
-                                  for oid, n, g in zip(wm.object_ids, wm.object_names, wm.objects)}),
+        objects=MappingProxyType(
+            {oid: WorldObject(n, g) for oid, n, g in zip(wm.object_ids, wm.object_names, wm.objects)}
+        ),
         poses=MappingProxyType({s: np.asarray(p, np.float64) for s, p in wm.states.items()}),
-        cameras=MappingProxyType({ref: Cameras(c.viewmats.astype(np.float32), c.Ks.astype(np.float32),
-                                               c.width, c.height)}),
+        cameras=MappingProxyType(
+            {ref: Cameras(c.viewmats.astype(np.float32), c.Ks.astype(np.float32), c.width, c.height)}
+        ),
         classifier_weight=np.zeros((k + 1, f), np.float32),
         classifier_bias=np.zeros(k + 1, np.float32),
-        metadata=MappingProxyType({**wm.metadata, "reference_state": ref, "name": wm.name,
-                                   "table": _table_meta(wm)}),
+        metadata=MappingProxyType(
+            {**wm.metadata, "reference_state": ref, "name": wm.name, "table": _table_meta(wm)}
+        ),
         units=units,
     )
 
@@ -106,22 +119,35 @@ def _as_base(base) -> World | None:
         return world_from_model(base)
     if isinstance(base, (str, Path)):
         return load_world(base)  # WorldFormatError (a ValueError) names the file
-    raise ValueError(f"base must be None, a world file path, a World or a WorldModel, "
-                     f"got {type(base).__name__}")
+    raise ValueError(
+        f"base must be None, a world file path, a World or a WorldModel, got {type(base).__name__}"
+    )
 
 
 def _with_features(g: GaussianSet, width: int, what: str) -> GaussianSet:
     if g.num_features == width:
         return g
     if g.num_features:
-        warnings.warn(f"{what}: its {g.num_features} identity features do not match the base world's "
-                      f"{width}; replaced by zeros", stacklevel=3)
+        warnings.warn(
+            f"{what}: its {g.num_features} identity features do not match the base world's "
+            f"{width}; replaced by zeros",
+            stacklevel=3,
+        )
     return dataclasses.replace(g, features=np.zeros((g.num, width), np.float32))
 
 
-def world_from_ply(ply_path, base=None, role: str = "background", *, object_name: str | None = None,
-                   num_views: int = 16, width: int = 256, height: int = 256, up=None,
-                   for_env: bool = False) -> World:
+def world_from_ply(
+    ply_path,
+    base=None,
+    role: str = "background",
+    *,
+    object_name: str | None = None,
+    num_views: int = 16,
+    width: int = 256,
+    height: int = 256,
+    up=None,
+    for_env: bool = False,
+) -> World:
     """A world (:class:`dsg_gym.world.World`, the world-file object; ``WorldModel.from_world`` makes the
     runtime model of it, which needs at least one object) with the PLY's Gaussians as its background or as a
     new object (see the module docstring). ``base``: ``None``, a world file path, a ``World`` or a ``WorldModel``.
@@ -137,9 +163,11 @@ def world_from_ply(ply_path, base=None, role: str = "background", *, object_name
         raise ValueError(f"{ply_path}: the PLY has no Gaussians")
     b = _as_base(base)
     if for_env and role == "background" and (b is None or b.num_objects == 0):
-        raise ValueError("a world for DSGWorld-v0 needs at least one object: import the PLY with "
-                         "role='object' (--as object), or replace the background of a base world that has "
-                         "objects (--base WORLD)")
+        raise ValueError(
+            "a world for DSGWorld-v0 needs at least one object: import the PLY with "
+            "role='object' (--as object), or replace the background of a base world that has "
+            "objects (--base WORLD)"
+        )
     source = {"ply": ply_path.name, "role": role, "gaussians": g.num}
 
     if b is None:
@@ -148,28 +176,41 @@ def world_from_ply(ply_path, base=None, role: str = "background", *, object_name
         if role == "background":
             return World(
                 background=dataclasses.replace(g, labels=np.zeros(g.num, np.int32)),
-                objects=MappingProxyType({}), poses=MappingProxyType({}),
+                objects=MappingProxyType({}),
+                poses=MappingProxyType({}),
                 cameras=MappingProxyType({"orbit": cams}),
-                classifier_weight=np.zeros((1, f), np.float32), classifier_bias=np.zeros(1, np.float32),
-                metadata=MappingProxyType({"name": ply_path.stem, "source": "ply-import",
-                                           "imports": [source]}),
+                classifier_weight=np.zeros((1, f), np.float32),
+                classifier_bias=np.zeros(1, np.float32),
+                metadata=MappingProxyType(
+                    {"name": ply_path.stem, "source": "ply-import", "imports": [source]}
+                ),
                 units="unknown",
             )
         name = object_name or ply_path.stem
         m = g.means.astype(np.float64)
         lo, hi = m.min(0), m.max(0)
         pad = max(float(np.max(hi[:2] - lo[:2])), 0.05)
-        table = {"bounds": [[lo[0] - pad, lo[1] - pad, lo[2]], [hi[0] + pad, hi[1] + pad, lo[2]]],
-                 "top_z": float(lo[2])}
+        table = {
+            "bounds": [[lo[0] - pad, lo[1] - pad, lo[2]], [hi[0] + pad, hi[1] + pad, lo[2]]],
+            "top_z": float(lo[2]),
+        }
         obj = dataclasses.replace(g, labels=np.ones(g.num, np.int32))
         return World(
             background=GaussianSet.empty(g.sh_degree, f),
             objects=MappingProxyType({1: WorldObject(name, obj)}),
             poses=MappingProxyType({"state1": np.eye(4)[None]}),
             cameras=MappingProxyType({"state1": cams}),
-            classifier_weight=np.zeros((2, f), np.float32), classifier_bias=np.zeros(2, np.float32),
-            metadata=MappingProxyType({"name": name, "source": "ply-import", "reference_state": "state1",
-                                       "table": table, "imports": [source]}),
+            classifier_weight=np.zeros((2, f), np.float32),
+            classifier_bias=np.zeros(2, np.float32),
+            metadata=MappingProxyType(
+                {
+                    "name": name,
+                    "source": "ply-import",
+                    "reference_state": "state1",
+                    "table": table,
+                    "imports": [source],
+                }
+            ),
             units="unknown",
         )
 
@@ -184,8 +225,10 @@ def world_from_ply(ply_path, base=None, role: str = "background", *, object_name
     oid = max(b.object_ids, default=0) + 1
     name = object_name or ply_path.stem
     if name in b.object_names:
-        raise ValueError(f"the base world already has an object named {name!r} "
-                         f"(objects: {list(b.object_names)}); choose another object name")
+        raise ValueError(
+            f"the base world already has an object named {name!r} "
+            f"(objects: {list(b.object_names)}); choose another object name"
+        )
     obj = _with_features(dataclasses.replace(g, labels=np.full(g.num, oid, np.int32)), f, str(ply_path))
     objects = {**dict(b.objects), oid: WorldObject(name, obj)}
     poses = {s: np.concatenate([np.asarray(p, np.float64), np.eye(4)[None]]) for s, p in b.poses.items()}

@@ -1,4 +1,6 @@
-"""``python -m train_world.cli.baselines``: train the comparison baselines (a) and (b) of the suite; the work is :mod:`train_world.suite.baselines`."""
+"""``python -m train_world.cli.baselines``: train the comparison baselines (a) and (b) of the suite; the work
+is :mod:`train_world.suite.baselines`.
+"""
 
 from __future__ import annotations
 
@@ -18,7 +20,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from dsg_gym.world import write_world
 
-    p = argparse.ArgumentParser(prog="python -m train_world.cli.baselines", description=_lib.__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m train_world.cli.baselines", description=_lib.__doc__.split("\n")[0]
+    )
     sub = p.add_subparsers(dest="cmd", required=True)
     a = sub.add_parser("single", help="baseline (a): train one field on state1")
     a.add_argument("capture", type=Path)
@@ -29,10 +33,17 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--max-gaussians", type=int, help="cap on the field's Gaussian count (default: preset's)")
     a.add_argument("--checkpoint", type=Path, help="checkpoint file (default: none)")
     a.add_argument("--resume", action="store_true", help="continue from --checkpoint if it exists")
-    a.add_argument("--holdout-every", type=int, help="hold out every n-th view (default: as dsg-train, none when "
-                   "the capture has test states)")
-    a.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
-                   help="Mip-Splatting filters, as dsg-train --mip (default: the preset's)")
+    a.add_argument(
+        "--holdout-every",
+        type=int,
+        help="hold out every n-th view (default: as dsg-train, none when the capture has test states)",
+    )
+    a.add_argument(
+        "--mip",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="Mip-Splatting filters, as dsg-train --mip (default: the preset's)",
+    )
     b = sub.add_parser("knn", help="baseline (b): kNN background completion of a single-state world")
     b.add_argument("world", type=Path)
     b.add_argument("--out", type=Path, required=True)

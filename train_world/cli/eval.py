@@ -1,4 +1,6 @@
-"""``dsg-eval``: score a world against a capture (PSNR, SSIM, mask IoU) and write error grids; the work is :mod:`train_world.eval.evaluate`."""
+"""``dsg-eval``: score a world against a capture (PSNR, SSIM, mask IoU) and write error grids; the work is
+:mod:`train_world.eval.evaluate`.
+"""
 
 from __future__ import annotations
 
@@ -29,11 +31,12 @@ def _parser() -> argparse.ArgumentParser:
         "(default: 'test' for a two-state world, or one trained without held-out views, on a capture with test "
         "states; else the held-out views of the training state)",
     )
-    p.add_argument("--suite", action="store_true",
-                   help="instead: run the DSG-World comparison (dsg-suite); the other options are dsg-suite's")
+    p.add_argument(
+        "--suite",
+        action="store_true",
+        help="instead: run the DSG-World comparison (dsg-suite); the other options are dsg-suite's",
+    )
     return p
-
-
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,4 +1,6 @@
-"""``python -m train_world.cli.geom_world``: write the geometry world of a synthetic scene; the work is :mod:`train_world.synth.geom_world`."""
+"""``python -m train_world.cli.geom_world``: write the geometry world of a synthetic scene; the work is
+:mod:`train_world.synth.geom_world`.
+"""
 
 from __future__ import annotations
 

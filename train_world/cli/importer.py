@@ -1,4 +1,6 @@
-"""``dsg-import``: bring a real capture (LLFF or nerfstudio ``transforms.json``) into the capture layout; the work is :mod:`train_world.capture.importers`."""
+"""``dsg-import``: bring a real capture (LLFF or nerfstudio ``transforms.json``) into the capture layout; the
+work is :mod:`train_world.capture.importers`.
+"""
 
 from __future__ import annotations
 
@@ -13,14 +15,14 @@ from train_world.capture.importers import import_llff, import_transforms
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="dsg-import", description=_lib.__doc__.split("\n\n")[0] + " See README " "'Capture format on disk'."
+        prog="dsg-import", description=_lib.__doc__.split("\n\n")[0] + " See docs/captures.md."
     )
     sub = p.add_subparsers(dest="kind", required=True)
     a = sub.add_parser("llff", help="LLFF capture: poses_bounds.npy + images[_F]/ (+ masks[_F]/)")
     a.add_argument("src", type=Path, help="LLFF folder")
     a.add_argument("--out", type=Path, required=True, help="output capture folder")
     a.add_argument(
-        "--factor", type=int, default=8, help="use images_F/ and masks_F/ (1: images/, masks/); " "default 8"
+        "--factor", type=int, default=8, help="use images_F/ and masks_F/ (1: images/, masks/); default 8"
     )
     a.add_argument("--threshold", type=int, default=127, help="mask pixels > threshold are the object")
     a.add_argument("--no-masks", action="store_true", help="ignore masks even if present")

@@ -1,4 +1,6 @@
-"""``python -m train_world.cli.refine``: refine a merged two-state world on both states; the work is :mod:`train_world.dual_state.refine`."""
+"""``python -m train_world.cli.refine``: refine a merged two-state world on both states; the work is
+:mod:`train_world.dual_state.refine`.
+"""
 
 from __future__ import annotations
 
@@ -7,18 +9,20 @@ import sys
 from pathlib import Path
 
 from train_world.dual_state.refine import RefineConfig, refine_world, training_views_of
+from train_world.single_state.presets import get_preset
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m train_world.cli.refine",
         description="Refine a two-state world on both states' training views (what dsg-train does after "
-        "merging since session 16; for worlds written without it). Writes a new world file.",
+        "merging with the default preset; for worlds written without it). Writes a new world file.",
     )
     p.add_argument("world", type=Path, help="two-state world file (dsg-train on a capture with two states)")
     p.add_argument("capture", type=Path, help="the capture it was trained on")
     p.add_argument("--out", type=Path, required=True, help="world file to write")
-    p.add_argument("--steps", type=int, default=RefineConfig.steps, help=f"default {RefineConfig.steps}")
+    steps = get_preset("default").dual_refine_steps
+    p.add_argument("--steps", type=int, default=steps, help=f"default {steps}, as dsg-train's default preset")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -34,14 +38,24 @@ def main(argv: list[str] | None = None) -> int:
         world = load_world(args.world)
         if "refine" in world.metadata and world.metadata["refine"].get("steps", 0):
             raise ValueError(f"{args.world} is refined already ({world.metadata['refine']['steps']} steps)")
-        refined, info = refine_world(world, training_views_of(world, args.capture),
-                                     RefineConfig(steps=args.steps, seed=args.seed), progress=not args.quiet)
+        refined, info = refine_world(
+            world,
+            training_views_of(world, args.capture),
+            RefineConfig(steps=args.steps, seed=args.seed),
+            progress=not args.quiet,
+        )
         write_world(args.out, refined)
     except (ValueError, FileNotFoundError) as e:
         print(f"refine: error: {e}", file=sys.stderr)
         return 2
-    print(json.dumps({"world": str(args.out), **{k: info.get(k) for k in ("steps", "loss_first", "loss_last",
-                                                                          "seconds")}}))
+    print(
+        json.dumps(
+            {
+                "world": str(args.out),
+                **{k: info.get(k) for k in ("steps", "loss_first", "loss_last", "seconds")},
+            }
+        )
+    )
     return 0
 
 

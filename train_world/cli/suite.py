@@ -1,4 +1,6 @@
-"""``dsg-suite``: the paper comparison suite (baselines (a), (b) and the DSG-World ablations over the synthetic scenes); the work is :mod:`train_world.suite.runner`."""
+"""``dsg-suite``: the paper comparison suite (baselines (a), (b) and the DSG-World ablations over the
+synthetic scenes); the work is :mod:`train_world.suite.runner`.
+"""
 
 from __future__ import annotations
 
@@ -19,20 +21,37 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--out", type=Path, required=True, help="output folder (captures, worlds, eval, tables)")
-    p.add_argument("--merge", type=Path, nargs="+", metavar="TABLE_JSON",
-                   help="train nothing: join these runs' table.json files into OUT/table.md and OUT/table.json")
+    p.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        metavar="TABLE_JSON",
+        help="train nothing: join these runs' table.json files into OUT/table.md and OUT/table.json",
+    )
     p.add_argument("--scenes", default="all", help="comma-separated scene names or 'all' (default)")
     p.add_argument("--methods", default="a,b,B,BC,BCP", help="subset of a,b,B,BC,BCP (default: all)")
     p.add_argument("--preset", default="default")
     p.add_argument("--iterations", type=int, help="steps per training (schedules scaled)")
-    p.add_argument("--pseudo-every", type=int, help="pseudo-state loss every n-th joint step (default: dsg-train's)")
-    p.add_argument("--max-gaussians", type=int,
-                   help="cap on each field's Gaussian count, baseline (a) too (default: the preset's two-state cap)")
-    p.add_argument("--refine-steps", type=int,
-                   help="refinement steps after ours' joint phase (default: the preset's; 0: none, the paper's method)")
+    p.add_argument(
+        "--pseudo-every", type=int, help="pseudo-state loss every n-th joint step (default: dsg-train's)"
+    )
+    p.add_argument(
+        "--max-gaussians",
+        type=int,
+        help="cap on each field's Gaussian count, baseline (a) too (default: the preset's two-state cap)",
+    )
+    p.add_argument(
+        "--refine-steps",
+        type=int,
+        help="refinement steps after ours' joint phase (default: the preset's; 0: none, the paper's method)",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--mip", action=argparse.BooleanOptionalAction, default=None,
-                   help="train every world with (or without) the Mip-Splatting filters (default: the preset's)")
+    p.add_argument(
+        "--mip",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="train every world with (or without) the Mip-Splatting filters (default: the preset's)",
+    )
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--views", type=int)
@@ -51,11 +70,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.merge:  # joining tables trains nothing: a training option here is a mistake, not a no-op
         defaults = vars(parser.parse_args(["--out", str(args.out)]))
-        given = ["--" + k.replace("_", "-") for k, v in vars(args).items()
-                 if k not in ("merge", "methods") and v != defaults[k]]
+        given = [
+            "--" + k.replace("_", "-")
+            for k, v in vars(args).items()
+            if k not in ("merge", "methods") and v != defaults[k]
+        ]
         if given:
-            print(f"dsg-suite: error: --merge trains nothing and takes no training options (got {', '.join(given)})",
-                  file=sys.stderr)
+            print(
+                f"dsg-suite: error: --merge trains nothing and takes no training options (got {', '.join(given)})",
+                file=sys.stderr,
+            )
             return 2
         try:
             r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge], methods)

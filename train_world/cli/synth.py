@@ -25,7 +25,7 @@ def _parser() -> argparse.ArgumentParser:
         prog="dsg-synth",
         description="Render synthetic dual-state captures (two training states with every object moved, plus "
         "held-out test states) of tabletop MuJoCo scenes, with RGB, object-id masks, depth and "
-        "exact object poses. See README 'Capture format on disk'.",
+        "exact object poses. See docs/captures.md.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__.split("Examples::", 1)[1],
     )
@@ -42,15 +42,33 @@ def _parser() -> argparse.ArgumentParser:
         "--shadows", action="store_true", help="lights cast shadows (harder variant; off by default)"
     )
     p.add_argument(
-        "--lighting", choices=("soft", "spot", "headlight"), default="soft",
+        "--lighting",
+        choices=("soft", "spot", "headlight"),
+        default="soft",
         help="soft (default): light mostly from a point light at the camera, weak fixed lights; spot: strong "
         "fixed spot lights that shade moved objects differently (harder variant; generator 1.0's fixed lights); "
         "headlight: generator 1.2's soft (MuJoCo's directional headlight instead of the camera point light)",
     )
     p.add_argument(
-        "--supersample", type=int, default=4,
+        "--supersample",
+        type=int,
+        default=4,
         help="RGB samples per pixel along each axis, box-averaged like a camera sensor (default 4; 1 = one "
         "point sample per pixel, generator 1.1's aliased look)",
+    )
+    p.add_argument(
+        "--as-photos",
+        action="store_true",
+        help="write what a phone would give (OUT/state1|state2/images/*.jpg + masks/*.png, objects.json), the "
+        "input of dsg-capture, with the full synthetic capture in OUT/ground_truth/",
+    )
+    p.add_argument(
+        "--photo-noise",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="with --as-photos: Gaussian sensor noise of SIGMA grey levels (0..255 scale) plus a slight blur "
+        "(default 0: clean JPEGs)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -60,12 +78,19 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.list:
-        for name in default_scene_names():
+        try:
+            names = default_scene_names()
+        except (SpecError, OSError) as e:  # no scene descriptions installed
+            print(f"dsg-synth: error: {e}", file=sys.stderr)
+            return 2
+        for name in names:
             spec = resolve_scene(name)
             print(f"{name:20s} {len(spec.objects)} objects  {spec.description}")
         return 0
     if not args.scene or args.out is None:
         _parser().error("--scene and --out are required (or use --list)")
+    if args.photo_noise and not args.as_photos:
+        _parser().error("--photo-noise needs --as-photos")
     from train_world.synth.generate import GenerateConfig, generate_scene  # imports MuJoCo
 
     try:
@@ -87,7 +112,12 @@ def main(argv: list[str] | None = None) -> int:
             jobs = [(resolve_scene(args.scene), args.out)]
         for spec, out in jobs:
             t0 = time.perf_counter()
-            generate_scene(spec, out, cfg, overwrite=args.overwrite)
+            if args.as_photos:
+                from train_world.synth.photos import generate_photo_capture
+
+                generate_photo_capture(spec, out, cfg, overwrite=args.overwrite, noise=args.photo_noise)
+            else:
+                generate_scene(spec, out, cfg, overwrite=args.overwrite)
             print(f"{spec.name}: wrote {out} in {time.perf_counter() - t0:.1f} s")
     except (SpecError, ValueError, FileExistsError) as e:
         print(f"dsg-synth: error: {e}", file=sys.stderr)

@@ -50,7 +50,14 @@ from train_world.single_state.presets import (
     scaled_preset,
 )
 
-__all__ = ["main", "main_single_state", "main_two_state", "single_state_parser", "two_state_config", "two_state_parser"]
+__all__ = [
+    "main",
+    "main_single_state",
+    "main_two_state",
+    "single_state_parser",
+    "two_state_config",
+    "two_state_parser",
+]
 
 _EXAMPLES = __doc__.split("Examples::", 1)[1]
 
@@ -79,15 +86,18 @@ def add_depth_argument(p: argparse.ArgumentParser) -> None:
 def single_state_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="dsg-train",
-        description="Train a segmented Gaussian field (Gaussian Grouping loss, 3DGS densification) on one "
-        "state of a capture (or NeRF-Blender data) and write a world file (see README 'Training a world').",
+        description="Train a world from a capture and write the world file (docs/training.md). A capture with "
+        "two training states trains DSG-World's two-state model; `dsg-train CAPTURE --help` on such a capture "
+        "lists the two-state options (--joint-from, --no-align, --no-prune, --no-pseudo, --refine-steps, "
+        "--branch-from, ...). These options train one segmented Gaussian field (Gaussian Grouping loss, 3DGS "
+        "densification) on one state of a capture, or on NeRF-Blender data.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=_EXAMPLES,
     )
     p.add_argument(
         "capture", type=Path, help="capture folder (scene.json) or NeRF-Blender folder/transforms json"
     )
-    p.add_argument("--out", type=Path, required=True, help="world file to write (e.g. worlds/scene.dsgw)")
+    p.add_argument("--out", type=Path, required=True, help="world file to write (e.g. worlds/scene.dsgworld)")
     p.add_argument(
         "--preset",
         choices=sorted(PRESETS),
@@ -126,10 +136,9 @@ def single_state_parser() -> argparse.ArgumentParser:
 
 def wants_two_state(argv: list[str]) -> bool:
     """The single-state ``dsg-train`` command line ``argv`` names a capture with two training states and
-    neither ``--single-state`` nor ``--state`` (nor help): hand it to :func:`main_two_state`."""
-    if any(
-        a in ("--single-state", "-h", "--help") or a == "--state" or a.startswith("--state=") for a in argv
-    ):
+    neither ``--single-state`` nor ``--state``: hand it to :func:`main_two_state` (``--help`` then shows the
+    two-state options)."""
+    if any(a == "--single-state" or a == "--state" or a.startswith("--state=") for a in argv):
         return False
     return any(not a.startswith("-") and has_two_training_states(a) for a in argv)
 
@@ -146,24 +155,30 @@ def two_state_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="world file to write")
     p.add_argument("--preset", choices=sorted(PRESETS), default="default", help="default: default")
     p.add_argument(
-        "--iterations", type=int, help="steps (both fields per step; default: the preset's two-state count); "
-        "scales the schedule"
+        "--iterations",
+        type=int,
+        help="steps (both fields per step; default: the preset's two-state count); scales the schedule",
     )
     p.add_argument(
-        "--max-gaussians", type=int, help="cap on each field's Gaussian count (default: the preset's two-state cap)"
+        "--max-gaussians",
+        type=int,
+        help="cap on each field's Gaussian count (default: the preset's two-state cap)",
     )
     p.add_argument("--downscale", type=int, default=1)
     p.add_argument(
-        "--holdout-every", type=int, help="hold out every n-th view of each state (0: none; default: none "
-        f"when the capture has test states, else {HOLDOUT_WITHOUT_TEST_STATES})"
+        "--holdout-every",
+        type=int,
+        help="hold out every n-th view of each state (0: none; default: none "
+        f"when the capture has test states, else {HOLDOUT_WITHOUT_TEST_STATES})",
     )
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
     add_mip_argument(p)
     add_depth_argument(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
-        "--joint-from", type=float, help="reconstruction-only fraction of the steps (default: the preset's; "
-        "default 2/3, paper 0.5)"
+        "--joint-from",
+        type=float,
+        help="reconstruction-only fraction of the steps (default: the preset's; default 2/3, paper 0.5)",
     )
     p.add_argument("--lambda-align", type=float, default=1.0)
     p.add_argument("--lambda-pseudo", type=float, default=1.0)
@@ -175,11 +190,17 @@ def two_state_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--prune-every", type=int, default=500, help="co-pruning interval in joint steps")
     p.add_argument(
-        "--pseudo-every", type=int, default=2, help="pseudo-state loss every n-th joint step (default 2; paper: 1)"
+        "--pseudo-every",
+        type=int,
+        default=2,
+        help="pseudo-state loss every n-th joint step (default 2; paper: 1)",
     )
     p.add_argument(
-        "--refine-steps", type=int, metavar="N", help="after merging, refine the world on both states' training "
-        "views for N steps (not DSG-World's; 0: off; default: the preset's, 4000 for default, 0 for paper)"
+        "--refine-steps",
+        type=int,
+        metavar="N",
+        help="after merging, refine the world on both states' training "
+        "views for N steps (not DSG-World's; 0: off; default: the preset's, 4000 for default, 0 for paper)",
     )
     p.add_argument("--checkpoint", type=Path, help="checkpoint file (default: WORLD.ckpt)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
@@ -202,14 +223,17 @@ def two_state_config(args: argparse.Namespace):
     from train_world.dual_state.trainer import DualConfig
 
     preset = dataclasses.replace(
-        scaled_preset(args.preset, args.iterations, args.max_gaussians, two_state=True), **mip_overrides(args.mip),
+        scaled_preset(args.preset, args.iterations, args.max_gaussians, two_state=True),
+        **mip_overrides(args.mip),
         **depth_overrides(args.depth_weight),
     )
     base = TrainConfig(
         preset=preset,
         seed=args.seed,
         downscale=args.downscale,
-        holdout_every=default_holdout_every(args.capture) if args.holdout_every is None else args.holdout_every,
+        holdout_every=default_holdout_every(args.capture)
+        if args.holdout_every is None
+        else args.holdout_every,
         background=None if args.background is None else tuple(args.background),
     )
     return DualConfig(
@@ -241,8 +265,12 @@ def main_single_state(argv: list[str] | None = None) -> int:
 
     ckpt = args.checkpoint or args.out.with_name(args.out.name + ".ckpt")
     try:
-        preset = get_preset(args.preset, **({"iterations": args.iterations} if args.iterations else {}),
-                            **mip_overrides(args.mip), **depth_overrides(args.depth_weight))
+        preset = get_preset(
+            args.preset,
+            **({"iterations": args.iterations} if args.iterations else {}),
+            **mip_overrides(args.mip),
+            **depth_overrides(args.depth_weight),
+        )
         config = TrainConfig(
             preset=preset,
             seed=args.seed,
@@ -322,9 +350,16 @@ def main_two_state(argv: list[str] | None = None) -> int:
         if args.stop_at_joint:
             trainer.train(progress=not args.quiet, stop_after=trainer.joint_start)
             trainer.save_checkpoint()
-            print(json.dumps({"checkpoint": str(ckpt), "step": trainer.step,
-                              "train_seconds": round(trainer.elapsed, 1),
-                              "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))
+            print(
+                json.dumps(
+                    {
+                        "checkpoint": str(ckpt),
+                        "step": trainer.step,
+                        "train_seconds": round(trainer.elapsed, 1),
+                        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                    }
+                )
+            )
             return 0
         trainer.train(progress=not args.quiet)
         world = trainer.world()

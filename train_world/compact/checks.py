@@ -52,7 +52,13 @@ class SelfCheck:
 
         c = self.cams
         r = SceneRenderer(
-            bg, objs, c.viewmats[self.idx], c.Ks[self.idx], c.width, c.height, background_color=self.bg,
+            bg,
+            objs,
+            c.viewmats[self.idx],
+            c.Ks[self.idx],
+            c.width,
+            c.height,
+            background_color=self.bg,
             **self.splat,
         )
         out = np.empty((len(self.poses), len(self.idx), c.height, c.width, 3), np.float32)
@@ -96,8 +102,8 @@ class CaptureCheck:
         self.self_check = SelfCheck(world, cams, bg, cfg, float(np.mean(list(self.base.values()))))
 
     def _psnr(self, w: World) -> dict[str, float]:
-        from train_world.eval.evaluate import evaluate
         from dsg_gym.world import write_world
+        from train_world.eval.evaluate import evaluate
 
         self.n += 1
         path = write_world(self.tmp / f"candidate_{self.n}.dsgworld", w)

@@ -295,7 +295,9 @@ def _removed(parts: list[_Part], base: list[np.ndarray], sel: list[tuple[int, in
 class _Search:
     """The pruning state: parts with their keep masks, the budget check and the log of rounds."""
 
-    def __init__(self, parts: list[_Part], check, cams: SceneCameras, bg, cfg: CompactConfig, log, splat: dict):
+    def __init__(
+        self, parts: list[_Part], check, cams: SceneCameras, bg, cfg: CompactConfig, log, splat: dict
+    ):
         self.parts, self.check, self.cams, self.bg, self.cfg, self.log = parts, check, cams, bg, cfg, log
         self.splat = splat
         self.rounds: list[dict[str, Any]] = []

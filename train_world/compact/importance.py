@@ -169,7 +169,9 @@ def _tile_scores(
                 )
                 if x1 < x0:
                     continue
-                todo = raster.column_bits(x0, x1) & ~row_done[ly]  # unfinished pixels, as splat_forward visits them
+                todo = (
+                    raster.column_bits(x0, x1) & ~row_done[ly]
+                )  # unfinished pixels, as splat_forward visits them
                 if todo == 0:
                     continue
                 bdy = cb * dy
@@ -178,7 +180,9 @@ def _tile_scores(
                     lx, todo = raster.pop_lowest_bit(todo)
                     p = ly * TILE + lx
                     tp = trans[p]
-                    code, alpha, _, nt = raster.pixel_step(consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp, row_done, ly, lx)
+                    code, alpha, _, nt = raster.pixel_step(
+                        consts, ca, bdy, cdy, xc[lx] - u, o, smax, tp, row_done, ly, lx
+                    )
                     if code < 2:
                         ndone += code
                         continue

@@ -30,7 +30,9 @@ def _t(a) -> torch.Tensor:
 
 
 @torch.no_grad()
-def _targets(g: GaussianSet, vm: torch.Tensor, K: torch.Tensor, width: int, height: int, splat: dict) -> torch.Tensor:
+def _targets(
+    g: GaussianSet, vm: torch.Tensor, K: torch.Tensor, width: int, height: int, splat: dict
+) -> torch.Tensor:
     """``[V,H,W,4]`` RGB over black and alpha of ``g``."""
     out = []
     for a in range(0, len(vm), 8):

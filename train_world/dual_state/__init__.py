@@ -2,7 +2,9 @@
 
 Modules: :mod:`.transfer` (object-aware state transfer T), :mod:`.losses` (L_align, L_pseudo),
 :mod:`.pseudo` (collision-free pseudo-state sampler), :mod:`.merge` (co-pruning, co-pasting, the merged
-world), :mod:`.trainer` (``DualTrainer``, ``DualConfig``), :mod:`.cli` (``dsg-train`` on two states).
+world), :mod:`.world` (``MergeInputs``, the merged world), :mod:`.views` (which views train),
+:mod:`.refine` (refinement of the merged world), :mod:`.trainer` (``DualTrainer``, ``DualConfig``). The
+``dsg-train`` command is :mod:`train_world.cli.train`.
 """
 
 from train_world.dual_state.losses import align_loss, pseudo_loss, semantic_divergence

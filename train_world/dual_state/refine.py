@@ -85,8 +85,15 @@ def _t(a: np.ndarray) -> torch.Tensor:
 def _field(parts: list[GaussianSet], world: World) -> SegmentedField:
     g = GaussianSet.concat(parts)
     sh = _t(g.sh)
-    f = SegmentedField(_t(g.means), _t(g.quats), _t(g.encoded_log_scales()), _t(g.encoded_opacity_logits()),
-                       sh[:, :1], sh[:, 1:], _t(g.features))
+    f = SegmentedField(
+        _t(g.means),
+        _t(g.quats),
+        _t(g.encoded_log_scales()),
+        _t(g.encoded_opacity_logits()),
+        sh[:, :1],
+        sh[:, 1:],
+        _t(g.features),
+    )
     f.configure_filters(**world.splat_options)
     return f
 
@@ -104,11 +111,18 @@ def _split(f: SegmentedField, parts: list[GaussianSet]) -> list[GaussianSet]:
     for p in parts:
         b = a + p.num
         k = p.sh.shape[1]
-        out.append(dataclasses.replace(
-            p, means=means[a:b].copy(), quats=q[a:b].copy(), sh=sh[a:b, :k].copy(),
-            opacities=activate_opacity(logits[a:b]), scales=activate_scale(log_s[a:b]),
-            opacity_logits=logits[a:b].copy(), log_scales=log_s[a:b].copy(),
-        ))
+        out.append(
+            dataclasses.replace(
+                p,
+                means=means[a:b].copy(),
+                quats=q[a:b].copy(),
+                sh=sh[a:b, :k].copy(),
+                opacities=activate_opacity(logits[a:b]),
+                scales=activate_scale(log_s[a:b]),
+                opacity_logits=logits[a:b].copy(),
+                log_scales=log_s[a:b].copy(),
+            )
+        )
         a = b
     return out
 
@@ -118,20 +132,28 @@ def _check_views(world: World, views: Mapping[str, StateViews]) -> None:
         raise ValueError("refine_world: no training views given")
     for s, v in views.items():
         if s not in world.poses:
-            raise ValueError(f"refine_world: the world has no poses for state {s!r} (states: {list(world.poses)})")
+            raise ValueError(
+                f"refine_world: the world has no poses for state {s!r} (states: {list(world.poses)})"
+            )
         n = v.images.shape[0]
         if n == 0 or v.images.dim() != 4 or v.images.shape[-1] != 3:
-            raise ValueError(f"refine_world: state {s!r}: images must be [V,H,W,3] with V > 0, "
-                             f"got {tuple(v.images.shape)}")
+            raise ValueError(
+                f"refine_world: state {s!r}: images must be [V,H,W,3] with V > 0, got {tuple(v.images.shape)}"
+            )
         if v.viewmats.shape != (n, 4, 4) or v.Ks.shape != (n, 3, 3):
-            raise ValueError(f"refine_world: state {s!r}: {n} images but viewmats {tuple(v.viewmats.shape)}, "
-                             f"Ks {tuple(v.Ks.shape)}")
+            raise ValueError(
+                f"refine_world: state {s!r}: {n} images but viewmats {tuple(v.viewmats.shape)}, "
+                f"Ks {tuple(v.Ks.shape)}"
+            )
         if not bool(torch.isfinite(v.images).all()):
             raise ValueError(f"refine_world: state {s!r}: images have NaN or Inf")
 
 
 def refine_world(
-    world: World, views: Mapping[str, StateViews], config: RefineConfig = RefineConfig(), *,
+    world: World,
+    views: Mapping[str, StateViews],
+    config: RefineConfig = RefineConfig(),
+    *,
     progress: bool = False,
 ) -> tuple[World, dict[str, Any]]:
     """``world`` refined on ``views`` (training views per state, :class:`StateViews`); returns the new world
@@ -146,16 +168,25 @@ def refine_world(
     labels = torch.cat([torch.full((p.num,), r, dtype=torch.int64) for r, p in enumerate(parts)])
     f = _field(parts, world)
     # object frame -> world at each state: the object's pose there (ObjectTransfer moves class r by table[r-1])
-    transfers = {s: ObjectTransfer(labels, torch.from_numpy(np.asarray(world.poses[s], np.float32).reshape(-1, 4, 4)))
-                 for s in views}
+    transfers = {
+        s: ObjectTransfer(labels, torch.from_numpy(np.asarray(world.poses[s], np.float32).reshape(-1, 4, 4)))
+        for s in views
+    }
     c = config
-    lrs = {"means": c.lr_means, "quats": c.lr_quats, "log_scales": c.lr_scales, "opacity_logits": c.lr_opacities,
-           "sh0": c.lr_sh0, "shN": c.lr_shN}
+    lrs = {
+        "means": c.lr_means,
+        "quats": c.lr_quats,
+        "log_scales": c.lr_scales,
+        "opacity_logits": c.lr_opacities,
+        "sh0": c.lr_sh0,
+        "shN": c.lr_shN,
+    }
     opt = torch.optim.Adam([{"params": [getattr(f, k)], "lr": v} for k, v in lrs.items()], eps=1e-15)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1.0 - i / c.steps)
     bg = torch.tensor(tuple(world.metadata.get("background", (0.0, 0.0, 0.0))), dtype=torch.float32)
-    width, height = (int(x) for x in (views[next(iter(views))].images.shape[2],
-                                      views[next(iter(views))].images.shape[1]))
+    width, height = (
+        int(x) for x in (views[next(iter(views))].images.shape[2], views[next(iter(views))].images.shape[1])
+    )
     gen = torch.Generator().manual_seed(int(c.seed))
     states = list(views)
     losses: list[float] = []
@@ -164,8 +195,15 @@ def refine_world(
         s = states[i % len(states)]
         v = views[s]
         j = int(torch.randint(v.images.shape[0], (1,), generator=gen))
-        out = f.render(v.viewmats[j : j + 1], v.Ks[j : j + 1], width, height, transform=transfers[s],
-                       background=bg, with_features=False)
+        out = f.render(
+            v.viewmats[j : j + 1],
+            v.Ks[j : j + 1],
+            width,
+            height,
+            transform=transfers[s],
+            background=bg,
+            with_features=False,
+        )
         loss = photometric_loss(out.rgb, v.images[j : j + 1], c.lambda_dssim)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"refine_world: loss is {float(loss)} at step {i}")
@@ -176,8 +214,13 @@ def refine_world(
         losses.append(float(loss.detach()))
     refined = _split(f, parts)
     window = max(1, min(100, c.steps // 10))
-    info = {**c.to_dict(), "states": states, "views": [int(views[s].images.shape[0]) for s in states],
-            "loss_first": float(np.mean(losses[:window])), "loss_last": float(np.mean(losses[-window:]))}
+    info = {
+        **c.to_dict(),
+        "states": states,
+        "views": [int(views[s].images.shape[0]) for s in states],
+        "loss_first": float(np.mean(losses[:window])),
+        "loss_last": float(np.mean(losses[-window:])),
+    }
     meta = {**world.metadata, "refine": dict(info)}  # no time in the file: a rerun writes the same bytes
     info["seconds"] = round(time.perf_counter() - t0, 1)
     objects = {i: WorldObject(world.objects[i].name, g) for i, g in zip(ids, refined[1:])}
@@ -195,11 +238,19 @@ def training_views_of(world: World, capture: str | Path) -> dict[str, StateViews
         raise ValueError("the world is not a two-state world (no 'training_states' in its metadata)")
     held = meta.get("heldout_views_by_state", {})
     downscale = int(meta.get("source", {}).get("downscale", 1))
-    cap = load_capture(capture, states=list(states), downscale=downscale, load_depth=False, load_masks=False,
-                       background=tuple(meta.get("background", (0.0, 0.0, 0.0))))
+    cap = load_capture(
+        capture,
+        states=list(states),
+        downscale=downscale,
+        load_depth=False,
+        load_masks=False,
+        background=tuple(meta.get("background", (0.0, 0.0, 0.0))),
+    )
     out = {}
     for s in states:
         v = cap.states[s]
         keep = torch.tensor([i for i in range(len(v)) if i not in set(held.get(s, ()))], dtype=torch.int64)
-        out[s] = StateViews(v.images[keep].contiguous(), v.viewmats[keep].contiguous(), v.Ks[keep].contiguous())
+        out[s] = StateViews(
+            v.images[keep].contiguous(), v.viewmats[keep].contiguous(), v.Ks[keep].contiguous()
+        )
     return out

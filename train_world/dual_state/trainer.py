@@ -302,7 +302,9 @@ class DualTrainer:
             opt.zero_grad(set_to_none=True)
         loss.backward()
         # a finite loss can still give a non-finite gradient: refuse the step before Adam spreads it
-        named = [(f"{tag}.{k}", v) for tag, t in (("g1", t1), ("g2", t2)) for k, v in t.field.params().items()]
+        named = [
+            (f"{tag}.{k}", v) for tag, t in (("g1", t1), ("g2", t2)) for k, v in t.field.params().items()
+        ]
         named += list(self.classifier.named_parameters(prefix="classifier"))
         check_gradients(named, self.step + 1, self.last_checkpoint_step)
         for t in (t1, t2):

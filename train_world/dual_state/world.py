@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from dsg_gym.sh_basis import rotate_sh
 from dsg_gym.cameras import Cameras
+from dsg_gym.sh_basis import rotate_sh
 from dsg_gym.world import World, build_world
 from train_world.dual_state.merge import co_paste_background
 from train_world.dual_state.transfer import gaussian_transforms, relative_transforms
@@ -76,7 +76,9 @@ def _rows(
     if T is not None and out["means"].shape[0]:
         out["means"], out["quats"] = rigid_transform_gaussians(out["means"], out["quats"], T)
         if out["shN"].shape[1]:  # the view-dependent colour turns with the object
-            sh = rotate_sh(torch.cat([out["sh0"], out["shN"]], 1).double().numpy(), T[:3, :3].double().numpy())
+            sh = rotate_sh(
+                torch.cat([out["sh0"], out["shN"]], 1).double().numpy(), T[:3, :3].double().numpy()
+            )
             out["shN"] = torch.from_numpy(sh[:, 1:]).to(out["shN"].dtype)
     return out
 
@@ -100,11 +102,7 @@ def merged_field(
     fp1, fp2 = run.footprints
     bg1, bg2 = l1 == 0, l2 == 0
     keep1, keep2 = co_paste_background(
-        f1.means.detach()[bg1].numpy(),
-        f2.means.detach()[bg2].numpy(),
-        fp1,
-        fp2,
-        run.footprint_margin,
+        f1.means.detach()[bg1].numpy(), f2.means.detach()[bg2].numpy(), fp1, fp2, run.footprint_margin
     )
     m1 = bg1.clone()
     m1[bg1] = torch.from_numpy(keep1)

@@ -23,8 +23,8 @@ their mean (``"mean"``, the same keys).
 
 Example::
 
-    dsg-eval worlds/four_mixed.dsgw data/four_mixed --out eval/four_mixed
-    dsg-eval worlds/two_blocks.dsgw data/two_blocks --out eval/two_blocks --state test
+    dsg-eval worlds/four_mixed.dsgworld data/four_mixed --out eval/four_mixed
+    dsg-eval worlds/two_blocks.dsgworld data/two_blocks --out eval/two_blocks --state test
     dsg-eval --suite --out suite --scenes two_blocks,five_small
 """
 
@@ -45,7 +45,15 @@ from train_world.capture.format import atomic_write_bytes, atomic_write_json, en
 from train_world.eval.metrics import mask_iou, psnr, ssim
 from train_world.single_state.data import load_eval_views
 
-__all__ = ["capture_test_states", "default_state", "evaluate", "evaluate_test_states", "mask_iou", "mean_of_means", "render_gaussians"]
+__all__ = [
+    "capture_test_states",
+    "default_state",
+    "evaluate",
+    "evaluate_test_states",
+    "mask_iou",
+    "mean_of_means",
+    "render_gaussians",
+]
 
 _PALETTE = np.array(
     [
@@ -66,7 +74,12 @@ _PALETTE = np.array(
 
 @torch.no_grad()
 def render_gaussians(
-    g: GaussianSet, viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, background=(0.0, 0.0, 0.0),
+    g: GaussianSet,
+    viewmats: np.ndarray,
+    Ks: np.ndarray,
+    width: int,
+    height: int,
+    background=(0.0, 0.0, 0.0),
     splat_options: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """RGB ``[V,H,W,3]`` and identity features ``[V,H,W,F]`` of ``g`` (one rasterizer call per view), with the
@@ -100,12 +113,6 @@ def render_gaussians(
         rgbs.append(out[0, ..., :3].numpy())
         feats.append(out[0, ..., 3:].numpy())
     return np.stack(rgbs), np.stack(feats)
-
-
-
-
-
-
 
 
 def _u8(img: np.ndarray) -> np.ndarray:
@@ -172,8 +179,9 @@ def evaluate(
         )
     poses = _poses_for(world, Path(capture), eval_state) if world.num_objects else None
     g = world.gaussians(poses=poses) if poses is not None else world.gaussians(state=trained_state)
-    rgb, feats = render_gaussians(g, views.viewmats.numpy(), views.Ks.numpy(), views.width, views.height, bg,
-                                  world.splat_options)
+    rgb, feats = render_gaussians(
+        g, views.viewmats.numpy(), views.Ks.numpy(), views.width, views.height, bg, world.splat_options
+    )
     pred_cls = world.classify(feats).argmax(-1) if world.num_objects else None
     gt_imgs = views.images.numpy()
     gt_cls = None if views.classes is None else views.classes.numpy()
@@ -268,15 +276,29 @@ def evaluate_test_states(world_path: str | Path, capture: str | Path, out_dir: s
         r = evaluate(world_path, capture, out / s, state=s)
         per_state[s] = {"views": r["views"], "mean": r["mean"]}
     mean = mean_of_means([v["mean"] for v in per_state.values()])
-    report = {"world": str(world_path), "capture": str(capture), "state": "test",
-              "views": sum(v["views"] for v in per_state.values()), "states": per_state, "mean": mean}
-    lines = [f"# Evaluation of `{Path(world_path).name}` at the test states", "",
-             "| state | views | PSNR (dB) | SSIM | mask IoU |", "| --- | --- | --- | --- | --- |"]
+    report = {
+        "world": str(world_path),
+        "capture": str(capture),
+        "state": "test",
+        "views": sum(v["views"] for v in per_state.values()),
+        "states": per_state,
+        "mean": mean,
+    }
+    lines = [
+        f"# Evaluation of `{Path(world_path).name}` at the test states",
+        "",
+        "| state | views | PSNR (dB) | SSIM | mask IoU |",
+        "| --- | --- | --- | --- | --- |",
+    ]
     for s, v in per_state.items():
         m = v["mean"]
-        lines.append(f"| {s} | {v['views']} | {_fmt(m['psnr'])} | {_fmt(m['ssim'])} | {_fmt(m['mask_iou'])} |")
-    lines.append(f"| **mean** | {report['views']} | **{_fmt(mean['psnr'])}** | **{_fmt(mean['ssim'])}** | "
-                 f"**{_fmt(mean['mask_iou'])}** |")
+        lines.append(
+            f"| {s} | {v['views']} | {_fmt(m['psnr'])} | {_fmt(m['ssim'])} | {_fmt(m['mask_iou'])} |"
+        )
+    lines.append(
+        f"| **mean** | {report['views']} | **{_fmt(mean['psnr'])}** | **{_fmt(mean['ssim'])}** | "
+        f"**{_fmt(mean['mask_iou'])}** |"
+    )
     atomic_write_json(out / "report.json", report)
     atomic_write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode("utf-8"))
     return report

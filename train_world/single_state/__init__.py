@@ -2,8 +2,8 @@
 
 Modules: :mod:`.presets` (configuration), :mod:`.data` (views to train on), :mod:`.init` (initial Gaussians),
 :mod:`.field` (``SegmentedField``, ``Classifier``), :mod:`.losses` (pure loss functions), :mod:`.strategy`
-(densification), :mod:`.checkpoint` (pickle-free checkpoints), :mod:`.trainer` (the loop), :mod:`.cli`
-(``dsg-train``).
+(densification), :mod:`.checkpoint` (pickle-free checkpoints), :mod:`.trainer` (the loop). The ``dsg-train``
+command is :mod:`train_world.cli.train`.
 
 How the OpenMP thread pools of torch and numba wait is set when ``train_world`` is imported
 (:mod:`train_world._openmp`).

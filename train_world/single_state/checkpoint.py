@@ -52,7 +52,12 @@ def tensor_digest(tensors: dict[str, torch.Tensor]) -> str:
 
 def save_checkpoint(path: str | Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
     tensors = {k: v.detach().contiguous() for k, v in tensors.items()}
-    doc = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, **meta, "sha256": tensor_digest(tensors)}
+    doc = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        **meta,
+        "sha256": tensor_digest(tensors),
+    }
     atomic_write_bytes(path, st_save(tensors, metadata={"json": json.dumps(doc)}))
 
 

@@ -115,8 +115,22 @@ def _capture_source(p: Path, cap, downscale: int) -> dict:
     src = {"kind": "capture", "path": str(p.resolve()), "downscale": downscale, "name": cap.name}
     gen = cap.metadata.get("generator") if isinstance(cap.metadata, Mapping) else None
     if isinstance(gen, Mapping):
-        src["generator"] = {k: gen[k] for k in ("name", "version", "seed", "scene_spec", "views", "test_views",
-                                                 "test_states", "shadows", "lighting", "supersample") if k in gen}
+        src["generator"] = {
+            k: gen[k]
+            for k in (
+                "name",
+                "version",
+                "seed",
+                "scene_spec",
+                "views",
+                "test_views",
+                "test_states",
+                "shadows",
+                "lighting",
+                "supersample",
+            )
+            if k in gen
+        }
     return src
 
 

@@ -32,8 +32,14 @@ from dsg_gym.geometry import quat_multiply, rotmat_to_quat
 from dsg_gym.splat import rasterize, spherical_harmonics
 from dsg_gym.splat_options import DEFAULT_EPS2D, check_splat_options
 
-__all__ = ["PARAM_NAMES", "Classifier", "RenderOutput", "SegmentedField", "filter3d_variance",
-           "rigid_transform_gaussians"]
+__all__ = [
+    "PARAM_NAMES",
+    "Classifier",
+    "RenderOutput",
+    "SegmentedField",
+    "filter3d_variance",
+    "rigid_transform_gaussians",
+]
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "features")
 
@@ -65,8 +71,16 @@ def rigid_transform_gaussians(
 
 
 @torch.no_grad()
-def filter3d_variance(means: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                      scale: float = 0.2, near: float = 0.2, margin: float = 0.15) -> torch.Tensor:
+def filter3d_variance(
+    means: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    scale: float = 0.2,
+    near: float = 0.2,
+    margin: float = 0.15,
+) -> torch.Tensor:
     """Mip-Splatting's 3D filter variance per Gaussian ``[N]``: ``scale * (depth / focal)^2`` for the camera
     that samples the centre most finely, among the cameras that see it (depth > ``near``, inside the image
     widened by ``margin``); Gaussians no camera sees get the largest value. means ``[N,3]``, viewmats
@@ -80,8 +94,13 @@ def filter3d_variance(means: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Ten
         zs = z.clamp_min(1e-9)
         u = p[:, 0] / zs * K[0, 0] + K[0, 2]
         v = p[:, 1] / zs * K[1, 1] + K[1, 2]
-        seen = (z > near) & (u >= -margin * width) & (u <= (1 + margin) * width) & (v >= -margin * height) & (
-            v <= (1 + margin) * height)
+        seen = (
+            (z > near)
+            & (u >= -margin * width)
+            & (u <= (1 + margin) * width)
+            & (v >= -margin * height)
+            & (v <= (1 + margin) * height)
+        )
         best = torch.where(seen, torch.minimum(best, z / f), best)
     seen = torch.isfinite(best)
     if not bool(seen.any()):
@@ -132,8 +151,13 @@ class SegmentedField(nn.Module):
         self._filter_cameras: tuple | None = None
 
     # ------------------------------------------------------------------ Mip-Splatting filters
-    def configure_filters(self, rasterize_mode: str = "classic", filter3d_scale: float = 0.0,
-                          cameras: tuple | None = None, eps2d: float = DEFAULT_EPS2D) -> None:
+    def configure_filters(
+        self,
+        rasterize_mode: str = "classic",
+        filter3d_scale: float = 0.0,
+        cameras: tuple | None = None,
+        eps2d: float = DEFAULT_EPS2D,
+    ) -> None:
         """Select the 2D mode, its low-pass ``eps2d`` (px^2) and the 3D filter. ``cameras``: ``(viewmats [V,4,4],
         Ks [V,3,3], width, height)`` of the training views that set each Gaussian's sampling rate (needed when
         ``filter3d_scale > 0``)."""
@@ -157,7 +181,9 @@ class SegmentedField(nn.Module):
             self.filter3d = None
             return
         viewmats, Ks, width, height = self._filter_cameras
-        self.filter3d = filter3d_variance(self.means.detach(), viewmats, Ks, width, height, self.filter3d_scale)
+        self.filter3d = filter3d_variance(
+            self.means.detach(), viewmats, Ks, width, height, self.filter3d_scale
+        )
 
     @torch.no_grad()
     def baked_params(self) -> dict[str, torch.Tensor]:
@@ -260,7 +286,8 @@ class SegmentedField(nn.Module):
 
         ``transform``: a rigid transform ``[4,4]`` / ``[N,4,4]`` or a callable ``(means, quats) -> (means,
         quats)``; SH colours turn with it when it has a ``rotate_dirs(dirs [C,N,3])`` or a ``rotations()``
-        ``[N,3,3]`` method, as :class:`train_world.dual_state.transfer.ObjectTransfer` has; ``sh_degree``: the SH degree used (default:
+        ``[N,3,3]`` method, as :class:`train_world.dual_state.transfer.ObjectTransfer` has; ``sh_degree``: the SH
+        degree used (default:
         the field's maximum); ``background``: ``[3]`` RGB (features get 0 behind); ``mask``: boolean ``[N]``
         selecting the Gaussians drawn; ``with_depth``: also the accumulated depth (the rasterizer's ``RGB+D``
         mode, ``RenderOutput.depth``; divide by ``alpha`` for the expected depth), differentiable in the means.
@@ -300,13 +327,27 @@ class SegmentedField(nn.Module):
             if with_features:
                 bg = torch.cat([bg, bg.new_zeros(feats.shape[1])])
         out, alpha, meta = rasterize(
-            means, quats, scales, opac, cols, viewmats, Ks, int(width), int(height), backgrounds=bg,
-            rasterize_mode=self.rasterize_mode, eps2d=self.eps2d, render_mode="RGB+D" if with_depth else "RGB",
+            means,
+            quats,
+            scales,
+            opac,
+            cols,
+            viewmats,
+            Ks,
+            int(width),
+            int(height),
+            backgrounds=bg,
+            rasterize_mode=self.rasterize_mode,
+            eps2d=self.eps2d,
+            render_mode="RGB+D" if with_depth else "RGB",
         )
         nf = feats.shape[1] if with_features else 0
         return RenderOutput(
-            rgb=out[..., :3], features=out[..., 3 : 3 + nf] if with_features else None, alpha=alpha,
-            meta=meta, depth=out[..., 3 + nf] if with_depth else None,
+            rgb=out[..., :3],
+            features=out[..., 3 : 3 + nf] if with_features else None,
+            alpha=alpha,
+            meta=meta,
+            depth=out[..., 3 + nf] if with_depth else None,
         )
 
     # ------------------------------------------------------------------ export

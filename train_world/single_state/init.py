@@ -88,11 +88,11 @@ def points_from_depth(
         ids.append(masks[i].reshape(-1).numpy()[valid] if masks is not None else np.zeros(valid.size))
     if not pts:
         raise ValueError("points_from_depth: no pixel has depth > 0")
-    P, Cc, I = np.concatenate(pts), np.concatenate(cols), np.concatenate(ids).astype(np.int64)
+    P, Cc, ids_all = np.concatenate(pts), np.concatenate(cols), np.concatenate(ids).astype(np.int64)
     if len(P) > max_points:
         keep = np.sort(rng.choice(len(P), max_points, replace=False))
-        P, Cc, I = P[keep], Cc[keep], I[keep]
-    return P, Cc.astype(np.float64), I
+        P, Cc, ids_all = P[keep], Cc[keep], ids_all[keep]
+    return P, Cc.astype(np.float64), ids_all
 
 
 def points_in_bounds(

@@ -32,8 +32,9 @@ def l1_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return (pred - gt).abs().mean()
 
 
-def depth_loss(depth_sum: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor, min_alpha: float = 0.5
-               ) -> torch.Tensor:
+def depth_loss(
+    depth_sum: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor, min_alpha: float = 0.5
+) -> torch.Tensor:
     """Mean relative error ``|D - D_gt| / D_gt`` of the rendered expected depth ``D = depth_sum / alpha``.
 
     ``depth_sum [..., H, W]``: the alpha-blended camera-space z (``sum_i w_i z_i``), ``alpha [..., H, W]`` the

@@ -15,8 +15,16 @@ from typing import Any
 
 from dsg_gym.splat_options import DEFAULT_EPS2D, check_splat_options
 
-__all__ = ["MIP_EPS2D", "MIP_FILTER3D_SCALE", "PRESETS", "LearningRates", "Preset", "TrainConfig", "get_preset",
-           "mip_overrides"]
+__all__ = [
+    "MIP_EPS2D",
+    "MIP_FILTER3D_SCALE",
+    "PRESETS",
+    "LearningRates",
+    "Preset",
+    "TrainConfig",
+    "get_preset",
+    "mip_overrides",
+]
 
 
 @dataclass(frozen=True)
@@ -93,16 +101,21 @@ class Preset:
             raise ValueError(f"preset {self.name!r}: {e}") from None
         if not (math.isfinite(self.lambda_depth) and self.lambda_depth >= 0):
             raise ValueError(
-                f"preset {self.name!r}: lambda_depth must be a finite number >= 0, got {self.lambda_depth}")
+                f"preset {self.name!r}: lambda_depth must be a finite number >= 0, got {self.lambda_depth}"
+            )
         if not self.filter3d_scale >= 0:
             raise ValueError(f"preset {self.name!r}: filter3d_scale must be >= 0, got {self.filter3d_scale}")
         for name in ("densify_every", "sh_degree_every", "checkpoint_every", "reg3d_every", "reset_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"preset {self.name!r}: {name} must be >= 1")
         if not 0.0 <= self.dual_joint_from <= 1.0:
-            raise ValueError(f"preset {self.name!r}: dual_joint_from must be in [0, 1], got {self.dual_joint_from}")
+            raise ValueError(
+                f"preset {self.name!r}: dual_joint_from must be in [0, 1], got {self.dual_joint_from}"
+            )
         if self.dual_refine_steps < 0:
-            raise ValueError(f"preset {self.name!r}: dual_refine_steps must be >= 0, got {self.dual_refine_steps}")
+            raise ValueError(
+                f"preset {self.name!r}: dual_refine_steps must be >= 0, got {self.dual_refine_steps}"
+            )
         for name in ("dual_iterations", "dual_max_gaussians"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"preset {self.name!r}: {name} must be >= 1 or None")
@@ -283,7 +296,5 @@ def scaled_preset(
         raise ValueError(f"--iterations must be at least 1, got {iterations}")
     f = iterations / p.iterations
     return dataclasses.replace(
-        p,
-        iterations=int(iterations),
-        **{k: max(1, round(getattr(p, k) * f)) for k in _SCHEDULE},
+        p, iterations=int(iterations), **{k: max(1, round(getattr(p, k) * f)) for k in _SCHEDULE}
     )

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from dsg_gym.splat.finite import all_finite
 from dsg_gym.cameras import Cameras
+from dsg_gym.splat.finite import all_finite
 from dsg_gym.world import World, build_world, write_world
 from train_world.single_state.checkpoint import (
     load_checkpoint,
@@ -166,8 +166,9 @@ class Trainer:
 
     def _configure_filters(self) -> None:
         d, p = self.data, self.preset
-        self.field.configure_filters(p.rasterize_mode, p.filter3d_scale, (d.viewmats, d.Ks, d.width, d.height),
-                                     p.eps2d)
+        self.field.configure_filters(
+            p.rasterize_mode, p.filter3d_scale, (d.viewmats, d.Ks, d.width, d.height), p.eps2d
+        )
 
     def refresh_filter3d(self, step: int) -> None:
         """Mip-Splatting's schedule: the 3D filter follows the means every ``densify_every`` steps."""
@@ -212,7 +213,11 @@ class Trainer:
             stats["id"] = float(id_loss.detach())
             if p.reg3d_weight > 0 and (step + 1) % p.reg3d_every == 0:
                 reg = neighbour_kl_loss(
-                    self.field.means, classifier(self.field.features), p.reg3d_k, p.reg3d_samples, self.generator
+                    self.field.means,
+                    classifier(self.field.features),
+                    p.reg3d_k,
+                    p.reg3d_samples,
+                    self.generator,
                 )
                 loss = loss + p.reg3d_weight * reg
         return loss, out, stats

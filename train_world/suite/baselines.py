@@ -60,8 +60,13 @@ def train_single_state(
         tr.load_checkpoint()
     tr.train(progress=progress)
     tr.write_world(out, {"baseline": "a: single-state segmentation"})
-    return {"world": str(out), "train_seconds": round(tr.elapsed, 1), "gaussians": tr.field.num,
-            "holdout_every": holdout_every, "training_views": [len(data)]}
+    return {
+        "world": str(out),
+        "train_seconds": round(tr.elapsed, 1),
+        "gaussians": tr.field.num,
+        "holdout_every": holdout_every,
+        "training_views": [len(data)],
+    }
 
 
 def reference_footprints(world: World, state: str | None = None):

@@ -17,7 +17,8 @@ Writes ``OUT/table.md`` (methods x scenes, PSNR / SSIM / mask IoU, and the mean 
 The full suite takes hours; ``--merge`` joins the ``table.json`` files of runs that each did some of the
 scenes (made with the same settings) into one table, a later file's (scene, method) replacing an earlier one's;
 ``--methods`` picks the rows to keep. It refuses to mix rows of ours (B, B+C, B+C+P) trained with different
-two-state schedules (steps, first joint step, refinement steps: ``table.json``'s ``two_state_schedule`` and each training's record),
+two-state schedules (steps, first joint step, refinement steps: ``table.json``'s ``two_state_schedule`` and
+each training's record),
 and rows of any method that held out different views of the training states (``holdout_every`` in each
 training's record: 0, as every suite capture has test states; tables whose records lack it held out 8).
 
@@ -74,7 +75,9 @@ def _provenance() -> dict[str, Any]:
 
     def git(*a: str) -> str | None:
         try:
-            r = subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True, timeout=30, check=False)
+            r = subprocess.run(
+                ["git", "-C", str(root), *a], capture_output=True, text=True, timeout=30, check=False
+            )
         except (OSError, subprocess.SubprocessError):
             return None
         return r.stdout.strip() if r.returncode == 0 else None
@@ -82,8 +85,19 @@ def _provenance() -> dict[str, Any]:
     commit = git("rev-parse", "HEAD")
     if commit and git("status", "--porcelain", "--untracked-files=no"):
         commit += "-dirty"
-    return {"commit": commit, "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "cpus": os.cpu_count()}
+    return {
+        "commit": commit,
+        "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "cpus": os.cpu_count(),
+    }
+
+
+def world_file(folder: Path, method: str) -> Path:
+    """The world file of ``method`` in a suite's per-scene folder: ``METHOD.dsgworld``, or an existing
+    ``METHOD.dsgw`` (the extension of older suite runs, reused as it is)."""
+    old = folder / f"{method}.dsgw"
+    new = folder / f"{method}.dsgworld"
+    return old if old.is_file() and not new.is_file() else new
 
 
 def two_state_schedule(preset: str, iterations: int | None, refine_steps: int | None = None) -> list[int]:
@@ -111,8 +125,10 @@ def _one_value(values: dict[tuple[str, str], Any], what: str) -> Any:
     distinct = sorted(set(values.values()))
     if len(distinct) > 1:
         where = {d: [f"{s}/{m}" for (s, m), v in values.items() if v == d] for d in distinct}
-        shown = "; ".join(f"{list(d) if isinstance(d, tuple) else d}: {', '.join(w[:3])}"
-                          f"{' ...' if len(w) > 3 else ''}" for d, w in where.items())
+        shown = "; ".join(
+            f"{list(d) if isinstance(d, tuple) else d}: {', '.join(w[:3])}{' ...' if len(w) > 3 else ''}"
+            for d, w in where.items()
+        )
         raise ValueError(f"{what} ({shown}); rerun them or leave some out with --methods")
     return distinct[0] if distinct else None
 
@@ -125,8 +141,11 @@ def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]
     train = row.get("train") or {}
     if "iterations" in train:
         steps = int(train["iterations"])
-        return (steps, int(train.get("joint_from_step", joint_start_step(0.5, steps))),
-                int(train.get("refine_steps", 0)))
+        return (
+            steps,
+            int(train.get("joint_from_step", joint_start_step(0.5, steps))),
+            int(train.get("refine_steps", 0)),
+        )
     if table.get("two_state_schedule"):
         return (tuple(table["two_state_schedule"]) + (0,))[:3]
     steps = table.get("iterations") or (_LEGACY_DEFAULT_STEPS if table.get("preset") == "default" else None)
@@ -145,14 +164,18 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
     for i, t in enumerate(tables[1:], start=1):
         for k in _SETTINGS:
             if t.get(k) != first.get(k):
-                raise ValueError(f"table {i} has {k}={t.get(k)!r} but table 0 has {first.get(k)!r}: "
-                                 "runs with different settings do not share a table")
+                raise ValueError(
+                    f"table {i} has {k}={t.get(k)!r} but table 0 has {first.get(k)!r}: "
+                    "runs with different settings do not share a table"
+                )
     out: dict[str, Any] = {k: first.get(k) for k in _SETTINGS}
     out.update(scenes={}, methods=[], provenance=[])
     schedules: dict[tuple[str, str], tuple[int, ...]] = {}
     holdouts: dict[tuple[str, str], int] = {}
     for t in tables:
-        out["provenance"].extend(t["provenance"] if isinstance(t.get("provenance"), list) else [t.get("provenance")])
+        out["provenance"].extend(
+            t["provenance"] if isinstance(t.get("provenance"), list) else [t.get("provenance")]
+        )
         for m in t.get("methods", []):
             if m not in out["methods"] and (methods is None or m in methods):
                 out["methods"].append(m)
@@ -164,11 +187,15 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
                 holdouts[(scene, m)] = int((r.get("train") or {}).get("holdout_every", _LEGACY_HOLDOUT))
                 if m in _OURS:
                     schedules[(scene, m)] = _row_schedule(r, t)
-    schedule = _one_value(schedules, "ours' rows were trained with different two-state schedules "
-                                     "[steps, first joint step, refinement steps]")
+    schedule = _one_value(
+        schedules,
+        "ours' rows were trained with different two-state schedules "
+        "[steps, first joint step, refinement steps]",
+    )
     out["two_state_schedule"] = list(schedule) if schedule else None
-    out["holdout_every"] = _one_value(holdouts, "rows were trained with different held-out views per state "
-                                                "(holdout_every)")
+    out["holdout_every"] = _one_value(
+        holdouts, "rows were trained with different held-out views per state (holdout_every)"
+    )
     known = _scene_list("all")  # the default scenes in their usual order, then any others
     order = [s for s in known if s in out["scenes"]] + sorted(s for s in out["scenes"] if s not in known)
     out["scenes"] = {s: out["scenes"][s] for s in order}
@@ -210,15 +237,22 @@ def _grid_png(
         n = min(rows, len(views.images))
         g = w.gaussians(poses=_poses_for(w, capture, state))
         renders[m], _ = render_gaussians(
-            g, views.viewmats[:n].numpy(), views.Ks[:n].numpy(), views.width, views.height, bg, w.splat_options
+            g,
+            views.viewmats[:n].numpy(),
+            views.Ks[:n].numpy(),
+            views.width,
+            views.height,
+            bg,
+            w.splat_options,
         )
     n = min(rows, len(views.images))
     grid = [[_u8(views.images[i].numpy())] + [_u8(renders[m][i]) for m in worlds] for i in range(n)]
     atomic_write_bytes(out_png, encode_png(_grid(grid)))
 
 
-def _refuse_reused_worlds_of_another_schedule(out: Path, scenes: list[str], methods: list[str],
-                                              table: dict[str, Any]) -> None:
+def _refuse_reused_worlds_of_another_schedule(
+    out: Path, scenes: list[str], methods: list[str], table: dict[str, Any]
+) -> None:
     """Before anything runs: raises ``ValueError`` when a world of ours that this run would reuse (its file and
     training record in ``OUT/worlds/<scene>/``) was trained with another two-state schedule than the run's
     (steps, first joint step, refinement steps), which would silently mix rows of two methods in one table."""
@@ -226,14 +260,19 @@ def _refuse_reused_worlds_of_another_schedule(out: Path, scenes: list[str], meth
     for scene in scenes:
         for m in methods:
             info_path = out / "worlds" / scene / f"{m}.json"
-            if m not in _OURS or not (out / "worlds" / scene / f"{m}.dsgw").is_file() or not info_path.is_file():
+            if (
+                m not in _OURS
+                or not world_file(out / "worlds" / scene, m).is_file()
+                or not info_path.is_file()
+            ):
                 continue
             have = _row_schedule({"train": json.loads(info_path.read_text())}, table)
             if have and have != want:
                 raise ValueError(
                     f"{scene}/{m}: the world in {info_path.parent} was trained with the two-state schedule "
                     f"{list(have)} (steps, first joint step, refinement steps), this run asks for {list(want)}; "
-                    "use another --out, or the matching --iterations / --refine-steps")
+                    "use another --out, or the matching --iterations / --refine-steps"
+                )
 
 
 def run_suite(
@@ -257,18 +296,27 @@ def run_suite(
     from train_world.eval.evaluate import evaluate_test_states
     from train_world.single_state.presets import get_preset
 
-    if refine_steps is not None and (isinstance(refine_steps, bool) or int(refine_steps) != refine_steps
-                                     or refine_steps < 0):
+    if refine_steps is not None and (
+        isinstance(refine_steps, bool) or int(refine_steps) != refine_steps or refine_steps < 0
+    ):
         raise ValueError(f"refine_steps must be a non-negative integer or None, got {refine_steps!r}")
     out = Path(out)
     py = sys.executable
     if max_gaussians is None:  # baseline (a) gets the two-state cap too: the same field size as each of ours
         max_gaussians = get_preset(preset).dual_max_gaussians
-    results: dict[str, Any] = {"preset": preset, "iterations": iterations, "mip": mip,
-                               "max_gaussians": max_gaussians, "synth_args": list(synth_args or []), "seed": seed,
-                               "pseudo_every": pseudo_every,
-                               "two_state_schedule": two_state_schedule(preset, iterations, refine_steps),
-                               "scenes": {}, "methods": methods, "provenance": _provenance()}
+    results: dict[str, Any] = {
+        "preset": preset,
+        "iterations": iterations,
+        "mip": mip,
+        "max_gaussians": max_gaussians,
+        "synth_args": list(synth_args or []),
+        "seed": seed,
+        "pseudo_every": pseudo_every,
+        "two_state_schedule": two_state_schedule(preset, iterations, refine_steps),
+        "scenes": {},
+        "methods": methods,
+        "provenance": _provenance(),
+    }
     _refuse_reused_worlds_of_another_schedule(out, scenes, methods, results)
     for scene in scenes:
         cap = out / "data" / scene
@@ -300,37 +348,77 @@ def run_suite(
             it += ["--max-gaussians", str(max_gaussians)]
         if mip is not None:
             it += ["--mip" if mip else "--no-mip"]
-        single = [py, "-m", "train_world.cli.baselines", "single", str(cap), "--preset", preset, "--seed", str(seed),
-                  "--resume", *it]
-        dual = [py, "-m", "train_world.cli.train", str(cap), "--preset", preset, "--seed", str(seed), "--quiet",
-                *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]), "--resume", *it,
-                *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))])]
+        single = [
+            py,
+            "-m",
+            "train_world.cli.baselines",
+            "single",
+            str(cap),
+            "--preset",
+            preset,
+            "--seed",
+            str(seed),
+            "--resume",
+            *it,
+        ]
+        dual = [
+            py,
+            "-m",
+            "train_world.cli.train",
+            str(cap),
+            "--preset",
+            preset,
+            "--seed",
+            str(seed),
+            "--quiet",
+            *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]),
+            "--resume",
+            *it,
+            *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))]),
+        ]
         recon_ckpt, recon_info = wdir / "recon.ckpt", wdir / "recon.json"
         runs: dict[str, Any] = {}
         for m in methods:
-            world = wdir / f"{m}.dsgw"
+            world = world_file(wdir, m)
             info_path = wdir / f"{m}.json"
             if not world.is_file():
                 if m == "a":
-                    cmd = [*single, "--out", str(world), "--checkpoint", str(wdir / "a.dsgw.ckpt")]
+                    cmd = [*single, "--out", str(world), "--checkpoint", str(wdir / "a.dsgworld.ckpt")]
                 elif m == "b":
-                    a_world = wdir / "a.dsgw"
+                    a_world = wdir / "a.dsgworld"
                     if not a_world.is_file():
-                        _run_json([*single, "--out", str(a_world), "--checkpoint", str(wdir / "a.dsgw.ckpt")],
-                                  logs / "a.log")
+                        _run_json(
+                            [*single, "--out", str(a_world), "--checkpoint", str(wdir / "a.dsgworld.ckpt")],
+                            logs / "a.log",
+                        )
                     cmd = [py, "-m", "train_world.cli.baselines", "knn", str(a_world), "--out", str(world)]
                 else:
                     # the ablations share one reconstruction phase (identical in all of them), then branch
                     if not recon_info.is_file():
-                        r = _run_json([*dual, "--out", str(wdir / "recon.dsgw"), "--stop-at-joint",
-                                       "--checkpoint", str(recon_ckpt)], logs / "recon.log")
+                        r = _run_json(
+                            [
+                                *dual,
+                                "--out",
+                                str(wdir / "recon.dsgworld"),
+                                "--stop-at-joint",
+                                "--checkpoint",
+                                str(recon_ckpt),
+                            ],
+                            logs / "recon.log",
+                        )
                         recon_info.write_text(json.dumps(r, indent=1))
                     cmd = [*dual, "--out", str(world), "--branch-from", str(recon_ckpt), *METHODS[m][1]]
                 info = _run_json(cmd, logs / f"{m}.log")
-                if m in ("B", "BC", "BCP"):  # wall time and memory of the whole training, shared phase included
+                if m in (
+                    "B",
+                    "BC",
+                    "BCP",
+                ):  # wall time and memory of the whole training, shared phase included
                     r = json.loads(recon_info.read_text())
                     info["recon_phase_seconds"] = r.get("wall_seconds")
-                    info["wall_seconds"] = round(info.get("wall_seconds", 0.0) + r.get("wall_seconds", 0.0), 1)
+                    info["wall_seconds"] = round(
+                        info.get("wall_seconds", 0.0) + r.get("wall_seconds", 0.0), 1
+                    )
                     info["peak_rss_mb"] = max(info.get("peak_rss_mb", 0.0), r.get("peak_rss_mb", 0.0))
                 info_path.write_text(json.dumps(info, indent=1))
             info = json.loads(info_path.read_text()) if info_path.is_file() else {}
@@ -341,7 +429,7 @@ def run_suite(
                 per_state, mean = {}, {k: None for k in ("psnr", "ssim", "mask_iou")}
             runs[m] = {"mean": mean, "per_state": per_state, "train": info}
         results["scenes"][scene] = runs
-        shown = {m: wdir / f"{m}.dsgw" for m in ("a", "BCP") if m in methods}
+        shown = {m: world_file(wdir, m) for m in ("a", "BCP") if m in methods}
         if shown and test_states:
             (out / "grids").mkdir(parents=True, exist_ok=True)
             _grid_png(out, cap, shown, out / "grids" / f"{scene}.png", test_states[0])
@@ -359,8 +447,10 @@ def _write_tables(out: Path, results: dict[str, Any]) -> None:
 
     scenes = list(results["scenes"])
     methods = results["methods"]
-    mean_over = {m: mean_of_means([results["scenes"][s][m]["mean"] for s in scenes if m in results["scenes"][s]])
-                 for m in methods}
+    mean_over = {
+        m: mean_of_means([results["scenes"][s][m]["mean"] for s in scenes if m in results["scenes"][s]])
+        for m in methods
+    }
     results["mean_over_scenes"] = mean_over
     lines = [
         f"# DSG-World suite (preset `{results['preset']}`"

@@ -249,9 +249,17 @@ class _Builder:
         # placed at the camera for every view (SceneRenderer.set_camera); its shadows would fall out of its sight
         if self.camera_light:
             wb.add_light(
-                name=CAMERA_LIGHT, pos=[0.0, -1.0, 1.0], dir=[0.0, 1.0, -1.0],
-                diffuse=[self.camera_light] * 3, specular=[0.0] * 3, ambient=[0.0] * 3, castshadow=False,
-                cutoff=180.0, exponent=0.0, attenuation=[1.0, 0.0, 0.0], type=mujoco.mjtLightType.mjLIGHT_SPOT,
+                name=CAMERA_LIGHT,
+                pos=[0.0, -1.0, 1.0],
+                dir=[0.0, 1.0, -1.0],
+                diffuse=[self.camera_light] * 3,
+                specular=[0.0] * 3,
+                ambient=[0.0] * 3,
+                castshadow=False,
+                cutoff=180.0,
+                exponent=0.0,
+                attenuation=[1.0, 0.0, 0.0],
+                type=mujoco.mjtLightType.mjLIGHT_SPOT,
             )
         specs = self.scene.lights or DEFAULT_LIGHTS
         for i, ls in enumerate(specs):
@@ -270,8 +278,9 @@ class _Builder:
             )
 
 
-def build_scene(spec: SceneSpec, width: int = 128, height: int = 128, shadows: bool = False,
-                lighting: str = "soft") -> BuiltScene:
+def build_scene(
+    spec: SceneSpec, width: int = 128, height: int = 128, shadows: bool = False, lighting: str = "soft"
+) -> BuiltScene:
     """Compile ``spec`` into a MuJoCo model with one movable camera :data:`RENDER_CAMERA`.
 
     ``width``/``height`` size the offscreen buffer; ``shadows`` turns on cast shadows of every light;

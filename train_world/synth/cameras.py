@@ -19,7 +19,9 @@ def look_at_opengl(eye, target, up=(0.0, 0.0, 1.0), roll: float = 0.0) -> np.nda
     axis, positive turns the image clockwise): the axes of :func:`dsg_gym.cameras.look_at` with y and z
     flipped, then rolled."""
     eye = np.asarray(eye, dtype=np.float64)
-    rows = look_at(eye, target, up)[:3, :3]  # OpenCV camera axes in world coordinates: x, y (down), z (forward)
+    rows = look_at(eye, target, up)[
+        :3, :3
+    ]  # OpenCV camera axes in world coordinates: x, y (down), z (forward)
     x, y, f = rows[0], -rows[1], rows[2]
     c, s = np.cos(roll), np.sin(roll)
     x, y = c * x + s * y, -s * x + c * y

@@ -45,7 +45,8 @@ GENERATOR_VERSION = "1.3"
 @dataclass(frozen=True)
 class GenerateConfig:
     """What to generate: image size, training views per training state, held-out test cameras shared by the
-    ``test_states`` test states, whether lights cast shadows, the lighting preset (``"soft"``, ``"spot"`` or ``"headlight"``,
+    ``test_states`` test states, whether lights cast shadows, the lighting preset (``"soft"``, ``"spot"`` or
+    ``"headlight"``,
     :data:`~train_world.synth.build.LIGHTING`) and the RGB supersampling factor per axis (``supersample``:
     each pixel is the mean of ``supersample**2`` point samples; 1 = point-sampled, generator 1.1's look)."""
 
@@ -67,9 +68,13 @@ class GenerateConfig:
         if self.test_views < 0 or self.test_states < 0:
             raise ValueError("GenerateConfig.test_views and test_states must be >= 0")
         if int(self.supersample) != self.supersample or not 1 <= self.supersample <= 16:
-            raise ValueError(f"GenerateConfig.supersample must be an integer in 1..16, got {self.supersample!r}")
+            raise ValueError(
+                f"GenerateConfig.supersample must be an integer in 1..16, got {self.supersample!r}"
+            )
         if self.lighting not in LIGHTING:
-            raise ValueError(f"GenerateConfig.lighting must be one of {sorted(LIGHTING)}, got {self.lighting!r}")
+            raise ValueError(
+                f"GenerateConfig.lighting must be one of {sorted(LIGHTING)}, got {self.lighting!r}"
+            )
         if (self.test_states > 0) != (self.test_views > 0):
             raise ValueError("test states need test views (and vice versa): set both > 0 or both 0")
 

@@ -25,9 +25,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from dsg_gym.cameras import Cameras, intrinsics_from_fov  # noqa: E402
 from dsg_gym.gaussians import GaussianSet  # noqa: E402
 from dsg_gym.poses import rotmat_to_quat  # noqa: E402
-from dsg_gym.cameras import Cameras, intrinsics_from_fov  # noqa: E402
 from dsg_gym.world_model import TableBounds, WorldModel  # noqa: E402
 from train_world.synth.build import build_scene, set_object_poses  # noqa: E402
 from train_world.synth.cameras import orbit_c2w  # noqa: E402
@@ -280,7 +280,9 @@ def _material_rgb(model, g: int) -> np.ndarray:
     return np.asarray(rgba[:3], dtype=np.float64)
 
 
-def build_geom_world(scene: SceneSpec | str = "two_blocks", config: GeomWorldConfig | None = None) -> WorldModel:
+def build_geom_world(
+    scene: SceneSpec | str = "two_blocks", config: GeomWorldConfig | None = None
+) -> WorldModel:
     """Build the geometry world of ``scene`` (a spec, a default scene name or a JSON path); see the module
     docstring. Deterministic for a given config (and MuJoCo / GL driver)."""
     cfg = GeomWorldConfig() if config is None else config
@@ -297,7 +299,10 @@ def build_geom_world(scene: SceneSpec | str = "two_blocks", config: GeomWorldCon
     baker = _Baker(built, cfg, np.concatenate([c_train, c_train2, c_test]))
     half = (2.0, 2.0)
     if spec.walls:  # the floor ends at the walls
-        half = (max(abs(w.center[0]) for w in spec.walls) or 2.0, max(abs(w.center[1]) for w in spec.walls) or 2.0)
+        half = (
+            max(abs(w.center[0]) for w in spec.walls) or 2.0,
+            max(abs(w.center[1]) for w in spec.walls) or 2.0,
+        )
     data = mujoco.MjData(model)
     set_object_poses(built, data, states["state1"])
     per_obj: dict[int, list] = {k: [] for k in range(1, built.num_objects + 1)}
@@ -382,7 +387,12 @@ def _gaussians(model, g, pts, nrm, s, acc, ws, cfg: GeomWorldConfig, label: int)
     r = cfg.radius_factor * s
     scales = np.tile([r, r, cfg.thickness_factor * r], (len(pts), 1))
     return GaussianSet.from_rgb(
-        pts, quats, scales, np.full(len(pts), cfg.opacity), np.clip(rgb, 0, 1), labels=np.full(len(pts), label)
+        pts,
+        quats,
+        scales,
+        np.full(len(pts), cfg.opacity),
+        np.clip(rgb, 0, 1),
+        labels=np.full(len(pts), label),
     )
 
 
@@ -395,13 +405,19 @@ def to_world(model: WorldModel):
 
     k = model.num_objects
     cams = model.cameras
-    objects = {oid: WorldObject(n, g) for oid, n, g in zip(model.object_ids, model.object_names, model.objects)}
+    objects = {
+        oid: WorldObject(n, g) for oid, n, g in zip(model.object_ids, model.object_names, model.objects)
+    }
     return World(
         background=model.background,
         objects=MappingProxyType(objects),
         poses=MappingProxyType({s: np.asarray(p, dtype=np.float64) for s, p in model.states.items()}),
         cameras=MappingProxyType(
-            {"state1": Cameras(cams.viewmats.astype(np.float32), cams.Ks.astype(np.float32), cams.width, cams.height)}
+            {
+                "state1": Cameras(
+                    cams.viewmats.astype(np.float32), cams.Ks.astype(np.float32), cams.width, cams.height
+                )
+            }
         ),
         classifier_weight=np.zeros((k + 1, 0), np.float32),
         classifier_bias=np.zeros(k + 1, np.float32),

@@ -28,6 +28,7 @@ import json
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+from dsg_gym.assets import scene_names, scenes_dir
 from train_world.synth.textures import PATTERNS
 
 __all__ = [
@@ -486,13 +487,19 @@ def load_scene_spec(path: str | Path) -> SceneSpec:
 
 
 def default_scenes_dir() -> Path:
-    """``assets/scenes`` of the repository (the default scene descriptions)."""
-    return Path(__file__).resolve().parents[2] / "assets" / "scenes"
+    """The default scene descriptions (the bundled ``assets/scenes``, :func:`dsg_gym.assets.scenes_dir`)."""
+    return scenes_dir()
 
 
 def default_scene_names() -> list[str]:
-    """Names of the default scenes, sorted."""
-    return sorted(p.stem for p in default_scenes_dir().glob("*.json"))
+    """Names of the default scenes, sorted; :class:`SpecError` (one line, naming the folder) when there are
+    none (an installation without its bundled assets)."""
+    names = scene_names()
+    if not names:
+        raise SpecError(
+            f"no default scene descriptions (*.json) in {default_scenes_dir()}; reinstall dsg-gym"
+        )
+    return names
 
 
 def resolve_scene(name_or_path: str) -> SceneSpec:

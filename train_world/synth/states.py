@@ -229,8 +229,7 @@ def check_state(scene: SceneSpec, poses: np.ndarray, name: str = "state") -> Non
         z = resting_height(obj.shape, rot)
         if abs(pose[2, 3] - z) > 1e-6:
             raise StateError(
-                f"{name}: {obj.name!r} does not rest on the surface (z={pose[2, 3]:.4f}, "
-                f"resting z={z:.4f})"
+                f"{name}: {obj.name!r} does not rest on the surface (z={pose[2, 3]:.4f}, resting z={z:.4f})"
             )
         h = _FP.support2(obj.shape, rot)
         tx, ty = pose[0, 3], pose[1, 3]
@@ -297,7 +296,7 @@ def verify_with_mujoco(
         if c.dist < -pen_tol:
             what = [names[o - 1] if o else built.model.geom(g).name for o, g in ((o1, g1), (o2, g2))]
             raise StateError(
-                f"{name}: MuJoCo reports {what[0]!r} and {what[1]!r} in collision " f"(depth {-c.dist:.4g} m)"
+                f"{name}: MuJoCo reports {what[0]!r} and {what[1]!r} in collision (depth {-c.dist:.4g} m)"
             )
     if not touching.all():
         missing = [n for n, t in zip(names, touching, strict=True) if not t]

@@ -1,0 +1,132 @@
+"""Measuring an estimated capture against the ground truth of the same scene (e.g. ``dsg-synth --as-photos``).
+
+The estimated frame differs from the truth by a similarity; :func:`compare_captures` fits it to the camera
+centres (Umeyama, views matched by state and file stem), then reports how far the estimated +z and table top
+(z = 0) are from the truth's, camera centre errors (truth units and
+percent of the scene radius: the median distance of the true camera centres from their mean), camera rotation
+errors (degrees) and, per object, the motion error between the first two states: where the estimated motion
+puts the object's true centre versus where it really went, and the angle between the rotations, both raw and
+modulo the object's shape symmetry when the truth's ``scene.json`` describes its shape (``dsg-synth`` does): a
+ball's rotation is then not scored, a cylinder's only by its axis, a box's and a prism's up to the turns that
+leave their shape unchanged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from train_world.capture.alignment import rotation_angle_deg, similarity_matrix, umeyama
+from train_world.capture.cameras import GL_TO_CV
+from train_world.capture.loader import Capture
+
+__all__ = ["compare_captures", "shape_symmetries"]
+
+
+def _turn(axis: int, deg: float) -> np.ndarray:
+    c, s_ = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    i, j = [k for k in range(3) if k != axis]
+    m = np.eye(3)
+    m[i, i], m[i, j], m[j, i], m[j, j] = c, -s_, s_, c
+    return m
+
+
+def shape_symmetries(shape: dict | None) -> str | list[np.ndarray]:
+    """Rotations ``[3,3]`` (object frame) that leave a ``dsg-synth`` shape unchanged, or ``"all"`` (sphere) or
+    ``"axis"`` (any turn about z, and upside down: cylinder, capsule); ``[I]`` when unknown."""
+    if not isinstance(shape, dict):
+        return [np.eye(3)]
+    kind = shape.get("type")
+    if kind == "sphere":
+        return "all"
+    if kind in ("cylinder", "capsule"):
+        return "axis"
+    if kind == "box":
+        e = np.asarray(shape.get("extents", [1, 2, 3]), np.float64)
+        out = []
+        for perm in ([0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]):
+            for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
+                m = np.zeros((3, 3))
+                m[np.arange(3), perm] = signs
+                if np.linalg.det(m) > 0 and np.allclose(np.abs(m) @ e, e, rtol=1e-6):
+                    out.append(m)
+        return out
+    if kind == "mesh" and shape.get("mesh") in ("prism", "frustum"):
+        n = int(shape.get("sides", 1))
+        out = [_turn(2, 360.0 * k / n) for k in range(n)]
+        if shape.get("mesh") == "prism":
+            out += [m @ _turn(0, 180.0) for m in out]
+        return out
+    return [np.eye(3)]
+
+
+def _symmetric_error(r_est: np.ndarray, r_gt: np.ndarray, q1: np.ndarray, sym) -> float:
+    if isinstance(sym, str) and sym == "all":
+        return 0.0
+    if isinstance(sym, str):
+        a = q1[:, 2]
+        ang = float(np.degrees(np.arccos(np.clip((r_est @ a) @ (r_gt @ a), -1.0, 1.0))))
+        return min(ang, 180.0 - ang)
+    return min(float(rotation_angle_deg(r_est.T @ r_gt @ q1 @ m @ q1.T)) for m in sym)
+
+
+def _cameras(cap: Capture) -> dict[str, np.ndarray]:
+    out = {}
+    for s, v in cap.states.items():
+        for path, c2w in zip(v.image_paths, v.c2w_opengl):
+            out[f"{s}/{path.stem}"] = c2w @ GL_TO_CV
+    return out
+
+
+def compare_captures(estimated: Capture, truth: Capture, src: str = "state1", dst: str = "state2") -> dict:
+    """Errors of ``estimated`` against ``truth`` (module docstring) as a JSON-ready dict."""
+    est, gt = _cameras(estimated), _cameras(truth)
+    keys = sorted(set(est) & set(gt))
+    if len(keys) < 3:
+        raise ValueError(f"only {len(keys)} views in common between the captures; need 3")
+    ce = np.array([est[k][:3, 3] for k in keys])
+    cg = np.array([gt[k][:3, 3] for k in keys])
+    s, rot, t = umeyama(ce, cg)
+    S = similarity_matrix(s, rot, t)
+    centre_err = np.linalg.norm(ce @ (s * rot).T + t - cg, axis=1)
+    rot_err = np.array([rotation_angle_deg(gt[k][:3, :3].T @ rot @ est[k][:3, :3]) for k in keys])
+    radius = float(np.median(np.linalg.norm(cg - cg.mean(axis=0), axis=1)))
+    T_est = estimated.relative_transform(src, dst)
+    T_gt = truth.relative_transform(src, dst)
+    objects = []
+    by_name = {o.name: i for i, o in enumerate(truth.objects)}
+    shapes = {o.get("name"): o.get("shape") for o in truth.metadata.get("objects", []) if isinstance(o, dict)}
+    for i, o in enumerate(estimated.objects):
+        if o.name not in by_name:
+            continue
+        j = by_name[o.name]
+        Tw = S @ T_est[i] @ np.linalg.inv(S)
+        c = truth.poses[src][j][:3, 3] if src in truth.poses else np.zeros(3)
+        pos = np.linalg.norm(Tw[:3, :3] @ c + Tw[:3, 3] - (T_gt[j][:3, :3] @ c + T_gt[j][:3, 3]))
+        ang = float(rotation_angle_deg(Tw[:3, :3].T @ T_gt[j][:3, :3]))
+        q1 = truth.poses[src][j][:3, :3] if src in truth.poses else np.eye(3)
+        sym = shape_symmetries(shapes.get(o.name))
+        objects.append(
+            {
+                "name": o.name,
+                "position_error": float(pos),
+                "rotation_error_deg": ang,
+                "rotation_error_mod_symmetry_deg": _symmetric_error(Tw[:3, :3], T_gt[j][:3, :3], q1, sym),
+                "true_rotation_deg": float(rotation_angle_deg(T_gt[j][:3, :3])),
+                "true_translation": float(np.linalg.norm(T_gt[j][:3, 3] + T_gt[j][:3, :3] @ c - c)),
+            }
+        )
+    up = rot @ np.array([0.0, 0.0, 1.0])
+    table = truth.metadata.get("table", {}) if isinstance(truth.metadata.get("table"), dict) else {}
+    return {
+        "views_compared": len(keys),
+        "up_axis_error_deg": float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0)))),
+        "table_top_error": float(t[2] - float(table.get("top_z", 0.0))),
+        "similarity_scale": float(s),
+        "scene_radius": radius,
+        "camera_centre_error_median": float(np.median(centre_err)),
+        "camera_centre_error_max": float(centre_err.max()),
+        "camera_centre_error_median_percent_of_radius": float(100 * np.median(centre_err) / radius),
+        "camera_rotation_error_median_deg": float(np.median(rot_err)),
+        "camera_rotation_error_max_deg": float(rot_err.max()),
+        "objects": objects,
+    }

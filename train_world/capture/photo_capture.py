@@ -1,0 +1,296 @@
+"""From a photo capture (two states of a real tabletop) to a standard capture, with an estimation report.
+
+:func:`build_capture` checks the photos (:mod:`.photos`), reconstructs the cameras of both states jointly
+(:mod:`.sfm`), undistorts photos and masks to a pinhole camera (:mod:`.undistort`), fits the table frame
+(:mod:`.frame`), estimates every object's rigid motion (:mod:`.motions`) and writes, atomically::
+
+    OUT/scene.json                 objects, table bounds, units, per-state object poses, relative_transforms
+    OUT/<state>/transforms.json    pinhole intrinsics + registered frames (OpenGL camera-to-world)
+    OUT/<state>/images/<stem>.png  undistorted photos
+    OUT/<state>/masks/<stem>.png   undistorted object-id masks
+    OUT/report.json                registered views, reprojection error, table fit, per-object estimates, scale
+
+Object poses: in ``state1`` each object sits at its centre (visual hull centroid) with the table frame's
+orientation; in ``state2`` it is that pose moved by the estimated motion, so ``relative_transforms`` equal
+``P2 @ inv(P1)``. Nothing is written at ``OUT`` unless everything succeeds.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from train_world.capture.cameras import GL_TO_CV
+from train_world.capture.features import ViewFeatures, extract_view_features
+from train_world.capture.format import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    atomic_write_bytes,
+    atomic_write_json,
+    encode_png,
+    frame_entry,
+    matrix_to_list,
+    staged_directory,
+    transforms_header,
+)
+from train_world.capture.frame import FrameError, fit_table_plane, table_frame
+from train_world.capture.motions import ObjectMotion, estimate_object_motion
+from train_world.capture.photos import (
+    PHOTO_STATES,
+    PhotoCapture,
+    PhotoCaptureError,
+    load_photo,
+    read_photo_capture,
+)
+from train_world.capture.sfm import SfmResult, quiet_colmap, run_sfm, silenced_stderr
+from train_world.capture.silhouettes import SilhouetteView, object_centre
+from train_world.capture.undistort import Undistorter
+
+__all__ = ["CAPTURE_TOOL_VERSION", "build_capture"]
+
+CAPTURE_TOOL_VERSION = "1.0"
+#: longest side of the masks used for visual hulls (larger masks are reduced, nearest pixel)
+SILHOUETTE_SIZE = 640
+#: feature localisation tolerance in pixels at the size features are detected
+FEATURE_TOLERANCE_PX = 1.5
+#: longest side at which object features are detected
+FEATURE_SIZE = 1600
+
+
+def _extractor(long_side: int):
+    import pycolmap
+
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.num_threads = 1
+    opts.use_gpu = False
+    opts.sift.max_num_orientations = 1
+    opts.sift.first_octave = -2 if long_side <= 800 else -1  # small photos: detect on a 4x upsampled image
+    with silenced_stderr():  # creation logs at INFO level
+        return pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
+
+
+def _silhouette(ids: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> SilhouetteView:
+    h, w = ids.shape
+    s = min(1.0, SILHOUETTE_SIZE / max(h, w))
+    if s < 1.0:
+        size = (max(1, round(w * s)), max(1, round(h * s)))
+        ids = np.asarray(Image.fromarray(ids).resize(size, Image.NEAREST))
+        K = K.copy()
+        K[0] *= size[0] / w
+        K[1] *= size[1] / h
+    return SilhouetteView(np.ascontiguousarray(ids), K, w2c)
+
+
+def _write_views(
+    capture: PhotoCapture, sfm: SfmResult, stage: Path, progress: bool
+) -> tuple[dict[str, Undistorter], dict[str, list[ViewFeatures]], dict[str, list[SilhouetteView]]]:
+    """Undistorted photos and masks into ``stage/<state>/``; object features and silhouettes per state."""
+    unds, feats, sils = {}, {}, {}
+    total = sum(len(sfm.registered[s]) for s in PHOTO_STATES)
+    with tqdm(
+        total=total, desc="dsg-capture: undistorting + object features", unit="photo", disable=not progress
+    ) as bar:
+        for s in PHOTO_STATES:
+            cam = sfm.cameras[s]
+            und = unds[s] = Undistorter.for_camera(cam.model, cam.params, cam.width, cam.height)
+            ex = _extractor(max(und.width, und.height))
+            feats[s], sils[s] = [], []
+            for v in capture.states[s]:
+                if v.key not in sfm.world_to_camera:
+                    continue
+                rgb, ids = load_photo(v)
+                rgb, ids = und.rgb(rgb), und.ids(ids)
+                atomic_write_bytes(stage / s / "images" / f"{v.stem}.png", encode_png(rgb))
+                atomic_write_bytes(stage / s / "masks" / f"{v.stem}.png", encode_png(ids))
+                w2c = sfm.world_to_camera[v.key]
+                gray = np.asarray(Image.fromarray(rgb).convert("L"))
+                feats[s].append(extract_view_features(gray, ids, und.K, w2c, ex, FEATURE_SIZE))
+                sils[s].append(_silhouette(ids, und.K, w2c))
+                bar.update(1)
+    return unds, feats, sils
+
+
+def _motion_report(obj, m: ObjectMotion, T_world: np.ndarray, scale: float) -> dict:
+    return {
+        "id": obj.id,
+        "name": obj.name,
+        "method": m.method,
+        "feature_matches": m.matches,
+        "feature_inliers": m.inliers,
+        "feature_rms_px": None if not np.isfinite(m.rms_px) else round(m.rms_px, 4),
+        "hull_alignment_rms": None if not np.isfinite(m.hull_rms) else round(m.hull_rms * scale, 6),
+        "views_seen": {"state1": m.views[0], "state2": m.views[1]},
+        "rotation_deg": round(
+            float(np.degrees(np.arccos(np.clip((np.trace(T_world[:3, :3]) - 1) / 2, -1, 1)))), 4
+        ),
+        "translation": [round(float(x), 6) for x in T_world[:3, 3]],
+    }
+
+
+def build_capture(
+    photos: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    metres_per_unit: float | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+) -> dict:
+    """Turn the photo capture ``photos`` into a standard capture at ``out`` (module docstring); returns the
+    report written to ``out/report.json``. Bad input raises :class:`PhotoCaptureError` (a ``ValueError``)
+    naming the file or object; an existing non-empty ``out`` raises ``FileExistsError`` unless ``overwrite``."""
+    if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
+        raise ValueError(f"metres per unit must be a positive number, got {metres_per_unit}")
+    say = log or (lambda _m: None)
+    t_start = time.perf_counter()
+    capture = read_photo_capture(photos)
+    out = Path(out)
+    say(
+        f"{sum(len(v) for v in capture.states.values())} photos, objects: "
+        + ", ".join(f"{o.id}={o.name}" for o in capture.objects)
+    )
+    with (
+        staged_directory(out, overwrite=overwrite) as stage,
+        tempfile.TemporaryDirectory(prefix=f".{out.name}.work.", dir=out.absolute().parent) as work,
+    ):
+        sfm = run_sfm(capture, work, progress=progress, log=say)
+        t = time.perf_counter()
+        with quiet_colmap():
+            unds, feats, sils = _write_views(capture, sfm, stage, progress)
+        t_views = time.perf_counter() - t
+        centres = np.array([np.linalg.inv(w)[:3, 3] for w in sfm.world_to_camera.values()])
+        anchors = [object_centre(sils[s], o.id)[0] for s in PHOTO_STATES for o in capture.objects]
+        anchors = np.array([a for a in anchors if np.all(np.isfinite(a))]).reshape(-1, 3)
+        if len(anchors) == 0:
+            raise PhotoCaptureError(
+                f"{capture.root}: no object is seen whole in two registered photos of a state"
+            )
+        try:
+            plane = fit_table_plane(sfm.points, anchors, centres)
+        except FrameError as e:
+            raise PhotoCaptureError(f"{capture.root}: cannot find the table plane: {e}") from e
+        say(f"table plane: {int(plane.inliers.sum())} of {len(sfm.points)} background points")
+        t = time.perf_counter()
+        motions = {}
+        for o in tqdm(
+            capture.objects, desc="dsg-capture: object motions", unit="object", disable=not progress
+        ):
+            long_side = max(unds["state1"].width, unds["state1"].height)
+            tol = FEATURE_TOLERANCE_PX * max(1.0, long_side / FEATURE_SIZE)
+            motions[o.id] = estimate_object_motion(
+                o,
+                (feats["state1"], feats["state2"]),
+                (sils["state1"], sils["state2"]),
+                (plane.normal, plane.offset),
+                tol,
+                seed=o.id,
+            )
+        t_motions = time.perf_counter() - t
+        frame = table_frame(
+            plane, sfm.points, np.array([m.centre for m in motions.values()]), centres, metres_per_unit
+        )
+        report = _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos)
+        report["timings_s"] = {
+            **{k: round(v, 2) for k, v in sfm.timings.items()},
+            "undistort_and_features_s": round(t_views, 2),
+            "motions_s": round(t_motions, 2),
+            "total_s": round(time.perf_counter() - t_start, 2),
+        }
+        atomic_write_json(stage / "report.json", report)
+    return report
+
+
+def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos) -> dict:
+    poses, rel, objects_report = {"state1": [], "state2": []}, [], []
+    for o in capture.objects:
+        m = motions[o.id]
+        T = frame.rigid(m.transform)
+        u, _, vt = np.linalg.svd(T[:3, :3])
+        T[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        T[3] = [0.0, 0.0, 0.0, 1.0]
+        p1 = np.eye(4)
+        p1[:3, 3] = frame.points(m.centre)[0]
+        poses["state1"].append({"id": o.id, "pose": matrix_to_list(p1)})
+        poses["state2"].append({"id": o.id, "pose": matrix_to_list(T @ p1)})
+        rel.append({"id": o.id, "transform": matrix_to_list(T)})
+        objects_report.append(_motion_report(o, m, T, frame.scale))
+    for s in PHOTO_STATES:
+        und = unds[s]
+        frames = []
+        for stem in sfm.registered[s]:
+            c2w_gl = frame.camera_to_world(sfm.world_to_camera[f"{s}/{stem}"]) @ GL_TO_CV
+            frames.append(frame_entry(f"images/{stem}.png", c2w_gl, f"masks/{stem}.png"))
+        doc = transforms_header(und.width, und.height, und.K[0, 0], und.K[1, 1], und.K[0, 2], und.K[1, 2])
+        doc["frames"] = frames
+        atomic_write_json(stage / s / "transforms.json", doc)
+    scale_source = "--metres-per-unit" if metres_per_unit else "none (units are arbitrary)"
+    scene = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "name": Path(photos).absolute().name,
+        "description": f"estimated by dsg-capture from the photos in {Path(photos).absolute()}",
+        "units": frame.units,
+        "up_axis": "+z",
+        "generator": {
+            "name": "dsg-capture",
+            "version": CAPTURE_TOOL_VERSION,
+            "camera_model": sfm.cameras["state1"].model,
+            "scale_source": scale_source,
+            "metres_per_unit": metres_per_unit,
+        },
+        "objects": [{"id": o.id, "name": o.name} for o in capture.objects],
+        "table": {"bounds": matrix_to_list(frame.bounds), "top_z": 0.0, "kind": "estimated"},
+        "states": {
+            s: {"split": "train", "num_views": len(sfm.registered[s]), "object_poses": poses[s]}
+            for s in PHOTO_STATES
+        },
+        "relative_transforms": [{"src": "state1", "dst": "state2", "transforms": rel}],
+    }
+    atomic_write_json(stage / "scene.json", scene)
+    extent = frame.bounds[1] - frame.bounds[0]
+    return {
+        "tool": {"name": "dsg-capture", "version": CAPTURE_TOOL_VERSION},
+        "photos": str(Path(photos).absolute()),
+        "registered": {
+            s: {
+                "views": len(sfm.registered[s]),
+                "of": len(capture.states[s]),
+                "not_registered": list(sfm.unregistered[s]),
+            }
+            for s in PHOTO_STATES
+        },
+        "mean_reprojection_error_px": round(sfm.mean_reprojection_error, 4),
+        "background_points": int(len(sfm.points)),
+        "cameras": {
+            s: {
+                "model": c.model,
+                "params": [round(x, 6) for x in c.params],
+                "width": c.width,
+                "height": c.height,
+                "undistorted_K": matrix_to_list(unds[s].K),
+                "undistorted_size": [unds[s].width, unds[s].height],
+            }
+            for s, c in sfm.cameras.items()
+        },
+        "table": {
+            "plane_inliers": int(frame.plane.inliers.sum()),
+            "plane_rms": round(frame.plane.rms * frame.scale, 6),
+            "bounds": matrix_to_list(frame.bounds),
+            "extent": [round(float(extent[0]), 6), round(float(extent[1]), 6)],
+        },
+        "units": frame.units,
+        "scale": {
+            "source": scale_source,
+            "metres_per_unit": metres_per_unit,
+            "note": "unit = median camera distance from the table origin, times --metres-per-unit when given; "
+            "measure a known length in these units and pass --metres-per-unit = metres / units to make it metric",
+        },
+        "objects": objects_report,
+    }

@@ -1,0 +1,210 @@
+"""Object shape and motion from masks alone (known cameras): visual hulls and their alignment.
+
+Textureless objects (a plain white ball) give no features to match; their masks still pin them down. For
+one object in one state, :func:`object_centre` intersects the rays through its mask centroids and
+:func:`visual_hull` carves a voxel grid around that centre with every view's mask (a pixel of another object
+does not carve: it may hide this one) and cuts it at the table plane. :func:`align_hulls` finds the rigid
+motion between the hulls of the two states by trimmed ICP from several starting turns about the table normal,
+preferring the turn closest to a given one among equally good fits (by default the smallest: a ball or a plain
+cylinder keeps its orientation); :func:`refine_hull_alignment` refines a given motion locally.
+Float64 throughout; deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from train_world.capture.alignment import rotation_angle_deg, umeyama
+
+__all__ = [
+    "SilhouetteView",
+    "align_hulls",
+    "hull_cost",
+    "object_centre",
+    "refine_hull_alignment",
+    "visual_hull",
+]
+
+#: voxels along each side of the carving grid
+HULL_RESOLUTION = 64
+#: fraction of a voxel's informative views that may see background there (mask noise)
+CARVE_TOLERANCE = 0.03
+#: fraction of the views that see a voxel in the image that must see the object there (the others may see
+#: another object in front of it)
+MIN_SEEN = 0.5
+#: starting turns (degrees) about the table normal tried by :func:`align_hulls`
+START_TURNS = tuple(range(0, 360, 30))
+
+
+@dataclass(frozen=True)
+class SilhouetteView:
+    """One view's object ids ``ids [h,w]`` uint8 with its ``K [3,3]`` (for that size) and OpenCV
+    world-to-camera ``w2c [4,4]``."""
+
+    ids: np.ndarray
+    K: np.ndarray
+    w2c: np.ndarray
+
+
+def _project(v: SilhouetteView, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    c = X @ v.w2c[:3, :3].T + v.w2c[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = v.K[0, 0] * c[:, 0] / c[:, 2] + v.K[0, 2]
+        w = v.K[1, 1] * c[:, 1] / c[:, 2] + v.K[1, 2]
+    h, wd = v.ids.shape
+    ok = (c[:, 2] > 0) & (u >= 0) & (u < wd) & (w >= 0) & (w < h)
+    return np.where(ok, u, 0).astype(np.int64), np.where(ok, w, 0).astype(np.int64), ok
+
+
+def object_centre(views: list[SilhouetteView], obj: int) -> tuple[np.ndarray, float, int]:
+    """``(centre [3], radius, views used)``: least-squares intersection of the rays through the object's
+    mask centroids, and its rough radius from the mask areas (views where the mask touches the border are
+    skipped)."""
+    A, b, radii = np.zeros((3, 3)), np.zeros(3), []
+    rows = []
+    for v in views:
+        ys, xs = np.nonzero(v.ids == obj)
+        h, w = v.ids.shape
+        if len(xs) < 4 or xs.min() == 0 or ys.min() == 0 or xs.max() == w - 1 or ys.max() == h - 1:
+            continue
+        d = np.linalg.solve(v.K, np.array([xs.mean() + 0.5, ys.mean() + 0.5, 1.0]))
+        rot = v.w2c[:3, :3]
+        o = -rot.T @ v.w2c[:3, 3]
+        d = rot.T @ d
+        d /= np.linalg.norm(d)
+        proj = np.eye(3) - np.outer(d, d)
+        A += proj
+        b += proj @ o
+        rows.append((o, d, np.sqrt(len(xs) / np.pi) / v.K[0, 0]))
+    if len(rows) < 2:
+        return np.full(3, np.nan), float("nan"), len(rows)
+    centre = np.linalg.lstsq(A, b, rcond=None)[0]
+    for o, d, ang in rows:
+        radii.append(ang * float(np.dot(centre - o, d)))
+    return centre, float(np.median(radii)), len(rows)
+
+
+def visual_hull(
+    views: list[SilhouetteView],
+    obj: int,
+    centre: np.ndarray,
+    radius: float,
+    plane: tuple[np.ndarray, float] | None = None,
+    resolution: int = HULL_RESOLUTION,
+) -> tuple[np.ndarray, float]:
+    """Occupied voxel centres ``[N,3]`` of the object's visual hull in a cube of side ``6 * radius`` around
+    ``centre`` (cut below ``plane = (normal, offset)``) and the voxel size."""
+    half = 3.0 * radius
+    step = 2.0 * half / resolution
+    g = (np.arange(resolution) + 0.5) * step - half
+    X = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) + np.asarray(centre, np.float64)
+    if plane is not None:
+        X = X[X @ plane[0] + plane[1] > 0.0]
+    inside = np.zeros(len(X), np.int32)
+    outside = np.zeros(len(X), np.int32)
+    seen = np.zeros(len(X), np.int32)
+    for v in views:
+        u, w, ok = _project(v, X)
+        ids = v.ids[w, u]
+        inside += ok & (ids == obj)
+        outside += ok & (ids == 0)
+        seen += ok
+    keep = (inside >= 2) & (outside <= CARVE_TOLERANCE * (inside + outside)) & (inside >= MIN_SEEN * seen)
+    return X[keep], step
+
+
+def _surface(points: np.ndarray, step: float) -> np.ndarray:
+    """The voxels of ``points`` with at least one empty 6-neighbour."""
+    if len(points) == 0:
+        return points
+    key = np.round((points - points.min(axis=0)) / step).astype(np.int64)
+    occupied = {tuple(k) for k in key}
+    out = []
+    for i, k in enumerate(key):
+        for dk in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)):
+            if (k[0] + dk[0], k[1] + dk[1], k[2] + dk[2]) not in occupied:
+                out.append(i)
+                break
+    return points[out]
+
+
+def _icp(src: np.ndarray, dst_tree: cKDTree, dst: np.ndarray, T: np.ndarray, iters: int, trim: float):
+    for _ in range(iters):
+        moved = src @ T[:3, :3].T + T[:3, 3]
+        d, j = dst_tree.query(moved)
+        keep = d <= np.quantile(d, trim)
+        _, rot, t = umeyama(src[keep], dst[j[keep]], with_scale=False)
+        T_new = np.eye(4)
+        T_new[:3, :3], T_new[:3, 3] = rot, t
+        if np.abs(T_new - T).max() < 1e-10:
+            T = T_new
+            break
+        T = T_new
+    return T
+
+
+def _cost(
+    src: np.ndarray, dst: np.ndarray, T: np.ndarray, src_tree: cKDTree, dst_tree: cKDTree, trim: float
+) -> float:
+    moved = src @ T[:3, :3].T + T[:3, 3]
+    back = (dst - T[:3, 3]) @ T[:3, :3]
+    d1, _ = dst_tree.query(moved)
+    d2, _ = src_tree.query(back)
+    d = np.concatenate([np.sort(d1)[: int(trim * len(d1))], np.sort(d2)[: int(trim * len(d2))]])
+    return float(np.sqrt(np.mean(d**2)))
+
+
+def hull_cost(src: np.ndarray, dst: np.ndarray, step: float, T: np.ndarray, trim: float = 0.9) -> float:
+    """Symmetric trimmed RMS distance between the surfaces of hulls ``dst`` and ``T src``."""
+    a, b = _surface(src, step), _surface(dst, step)
+    return _cost(a, b, np.asarray(T, np.float64), cKDTree(a), cKDTree(b), trim)
+
+
+def refine_hull_alignment(
+    src: np.ndarray, dst: np.ndarray, step: float, T: np.ndarray, trim: float = 0.9
+) -> tuple[np.ndarray, float]:
+    """Trimmed ICP of the hulls' surfaces from ``T`` (a local refinement) and the resulting
+    :func:`hull_cost`."""
+    a, b = _surface(src, step), _surface(dst, step)
+    ta, tb = cKDTree(a), cKDTree(b)
+    T = _icp(a, tb, b, np.asarray(T, np.float64), 40, trim)
+    return T, _cost(a, b, T, ta, tb, trim)
+
+
+def align_hulls(
+    src: np.ndarray,
+    dst: np.ndarray,
+    step: float,
+    up: np.ndarray,
+    starts: list[np.ndarray] | None = None,
+    prefer: np.ndarray | None = None,
+    trim: float = 0.9,
+    tie: float = 0.1,
+) -> tuple[np.ndarray, float, float]:
+    """Rigid ``T [4,4]`` with ``dst ~ T src`` for hull voxels ``src [N,3]`` and ``dst [M,3]`` (voxel size
+    ``step``), its :func:`hull_cost` and the best cost found. Starts from every turn of :data:`START_TURNS`
+    about ``up`` through the centroids plus the given ``starts``; among fits within ``tie * step`` of the
+    best, the one whose rotation is closest to ``prefer`` (default: no rotation) wins."""
+    prefer = np.eye(3) if prefer is None else np.asarray(prefer, np.float64)
+    a, b = _surface(src, step), _surface(dst, step)
+    ca, cb = src.mean(axis=0), dst.mean(axis=0)
+    ta, tb = cKDTree(a), cKDTree(b)
+    inits = []
+    for deg in START_TURNS:
+        rot = Rotation.from_rotvec(np.radians(deg) * np.asarray(up, np.float64)).as_matrix()
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = rot, cb - rot @ ca
+        inits.append(T)
+    inits += list(starts or [])
+    fits = []
+    for T in inits:
+        T = _icp(a, tb, b, T, 40, trim)
+        fits.append((_cost(a, b, T, ta, tb, trim), float(rotation_angle_deg(prefer.T @ T[:3, :3])), T))
+    best = min(f[0] for f in fits)
+    close = [f for f in fits if f[0] <= best + tie * step]
+    cost, _, T = min(close, key=lambda f: f[1])
+    return T, cost, best

@@ -1,0 +1,105 @@
+"""What a phone would give for a synthetic scene: a photo capture plus its ground truth (``dsg-synth --as-photos``).
+
+::
+
+    OUT/state1/images/NNNN.jpg     RGB as JPEG (quality 92 by default), optionally blurred and noisy
+    OUT/state1/masks/NNNN.png      uint8 object ids (0 = background), the same ids in every view and state
+    OUT/state2/...                 the same for the second state
+    OUT/objects.json               [{"id": 1, "name": ...}, ...]
+    OUT/ground_truth/              the full synthetic capture (scene.json, cameras, poses, depth, test states)
+
+The photo folder is what ``dsg-capture`` reads (:mod:`train_world.capture.photos`); ``ground_truth/`` is what
+its estimates are measured against. Everything is deterministic for a given seed.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import zlib
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageFilter
+
+from train_world.capture.format import atomic_write_bytes, atomic_write_json, staged_directory
+from train_world.synth.generate import GenerateConfig, generate_scene
+from train_world.synth.spec import SceneSpec, resolve_scene
+
+__all__ = ["PHOTO_STATES", "degrade_photo", "generate_photo_capture", "write_photos_from_capture"]
+
+#: the states a photo capture holds (the two training states of the synthetic capture)
+PHOTO_STATES = ("state1", "state2")
+#: Gaussian blur radius (pixels) applied together with sensor noise
+NOISE_BLUR_RADIUS = 0.5
+
+
+def degrade_photo(rgb: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """A slightly blurred copy of ``rgb`` (uint8 ``[H,W,3]``) with Gaussian sensor noise of ``noise`` grey
+    levels (standard deviation on the 0..255 scale); ``noise <= 0`` returns ``rgb`` unchanged."""
+    if noise <= 0:
+        return rgb
+    img = Image.fromarray(rgb).filter(ImageFilter.GaussianBlur(NOISE_BLUR_RADIUS))
+    a = np.asarray(img, dtype=np.float64) + rng.normal(0.0, float(noise), size=rgb.shape)
+    return np.clip(np.rint(a), 0, 255).astype(np.uint8)
+
+
+def _jpeg(rgb: np.ndarray, quality: int) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="JPEG", quality=int(quality), subsampling=0, optimize=False)
+    return buf.getvalue()
+
+
+def write_photos_from_capture(
+    capture: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    quality: int = 92,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> None:
+    """Write the photo-capture layout of the module docstring under ``out`` from the synthetic capture
+    folder ``capture`` (its ``state1`` and ``state2``): JPEG images, mask PNGs copied, ``objects.json``."""
+    if not 1 <= int(quality) <= 100:
+        raise ValueError(f"JPEG quality must be in 1..100, got {quality}")
+    if noise < 0:
+        raise ValueError(f"photo noise must be >= 0 grey levels, got {noise}")
+    capture, out = Path(capture), Path(out)
+    scene = json.loads((capture / "scene.json").read_text(encoding="utf-8"))
+    for state in PHOTO_STATES:
+        doc = json.loads((capture / state / "transforms.json").read_text(encoding="utf-8"))
+        for fr in doc["frames"]:
+            src = capture / state / fr["file_path"]
+            stem = Path(fr["file_path"]).stem
+            rgb = np.asarray(Image.open(src).convert("RGB"))
+            label = f"{int(seed) & 0xFFFFFFFF}/{state}/{stem}".encode()
+            rng = np.random.default_rng(zlib.crc32(label))
+            atomic_write_bytes(
+                out / state / "images" / f"{stem}.jpg", _jpeg(degrade_photo(rgb, noise, rng), quality)
+            )
+            atomic_write_bytes(
+                out / state / "masks" / f"{stem}.png", (capture / state / fr["mask_path"]).read_bytes()
+            )
+    atomic_write_json(out / "objects.json", [{"id": o["id"], "name": o["name"]} for o in scene["objects"]])
+
+
+def generate_photo_capture(
+    scene: SceneSpec | str,
+    out: str | os.PathLike,
+    config: GenerateConfig | None = None,
+    *,
+    overwrite: bool = False,
+    quality: int = 92,
+    noise: float = 0.0,
+) -> Path:
+    """Render ``scene`` into ``out/ground_truth`` and write its photo capture beside it, atomically (the
+    whole of ``out`` appears only when complete)."""
+    if isinstance(scene, str):
+        scene = resolve_scene(scene)
+    cfg = GenerateConfig() if config is None else config
+    out = Path(out)
+    with staged_directory(out, overwrite=overwrite) as stage:
+        generate_scene(scene, stage / "ground_truth", cfg)
+        write_photos_from_capture(stage / "ground_truth", stage, quality=quality, noise=noise, seed=cfg.seed)
+    return out

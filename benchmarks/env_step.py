@@ -86,10 +86,11 @@ def env_rate(
 
 
 class MujocoRun:
-    """MuJoCo's own EGL render (RGB + segmentation) of the matching synthetic scene, one random object moved
-    by up to 2 cm per frame; ``run(frames)`` returns frames/s of one repeat."""
+    """MuJoCo's own EGL render (RGB + segmentation) of the matching synthetic scene from ``cameras`` capture
+    cameras, one random object moved by up to 2 cm per frame; ``run(frames)`` returns frames/s of one repeat
+    (a frame: every camera rendered once)."""
 
-    def __init__(self, size: int, seed: int = 0):
+    def __init__(self, size: int, seed: int = 0, cameras: int = 1):
         import mujoco
 
         from train_world.synth import resolve_scene
@@ -103,12 +104,13 @@ class MujocoRun:
         self.built = build_scene(spec, size, size)
         self.data = mujoco.MjData(self.built.model)
         self.poses = sample_states(spec, rng_for(0, "states"), 3)["state1"]
-        self.cam = capture_cameras(spec, 0, "state1", 1, size, size)[0][0]
+        self.cams = list(capture_cameras(spec, 0, "state1", cameras, size, size)[0])
         self.rng = np.random.default_rng(seed)
         self.renderer = SceneRenderer(self.built, size, size)
         self.rates = []
         for _ in range(10):
-            self.renderer.render(self.data, self.cam, rgb=True, seg=True, depth=False)
+            for cam in self.cams:
+                self.renderer.render(self.data, cam, rgb=True, seg=True, depth=False)
 
     def run(self, frames: int) -> float:
         from train_world.synth.build import set_object_poses
@@ -119,7 +121,8 @@ class MujocoRun:
             k = self.rng.integers(len(p))
             p[k, :2, 3] += self.rng.uniform(-0.02, 0.02, 2)
             set_object_poses(self.built, self.data, p)
-            self.renderer.render(self.data, self.cam, rgb=True, seg=True, depth=False)
+            for cam in self.cams:
+                self.renderer.render(self.data, cam, rgb=True, seg=True, depth=False)
         self.rates.append(frames / (time.perf_counter() - t0))
         return self.rates[-1]
 

@@ -15,6 +15,7 @@ the background) and depth (1).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -26,8 +27,11 @@ from .splat import numba_bins as binning
 from .splat import numba_incremental as incr
 from .splat import numba_project as projection
 from .splat import numba_raster as raster
-from .splat.threads import min_parallel_work, parallel_allowed
+from .splat import numba_rigid as rigid
+from .splat.threads import ThreadChooser, min_parallel_work, parallel_allowed
 from .splat_options import DEFAULT_EPS2D, check_splat_options
+
+_FIXED_WORK = 8  # a render's fixed cost (projection, binning, Python) in units of one recomposited tile
 
 
 @dataclass(frozen=True)
@@ -112,11 +116,11 @@ def _rigid(poses, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     poses = np.asarray(poses, dtype=np.float64)
     q, Rm, t = np.empty((k, 4)), np.empty((k, 3, 3)), np.empty((k, 3))
     if poses.shape == (k, 7):
-        bad = incr.rigid_from_pose7(np.ascontiguousarray(poses), q, Rm, t)
+        bad = rigid.rigid_from_pose7(np.ascontiguousarray(poses), q, Rm, t)
         if bad >= 0:
             raise ValueError(f"poses: object {bad} has a non-finite position or a zero/non-finite quaternion")
     elif poses.shape == (k, 4, 4):
-        bad = incr.rigid_from_matrices(np.ascontiguousarray(poses), q, Rm, t)
+        bad = rigid.rigid_from_matrices(np.ascontiguousarray(poses), q, Rm, t)
         if bad >= 0:
             if not np.isfinite(poses[bad]).all():
                 raise ValueError(f"poses has a non-finite value at object {bad}")
@@ -141,9 +145,11 @@ class SceneRenderer:
         rasterize_mode: "classic" or "antialiased" (the Mip filter of :func:`dsg_gym.splat.rasterize`),
             eps2d: the 2D low-pass in px^2; a world must be rendered with the options it was trained with
             (``World.splat_options``).
-        parallel: run the kernels on numba's threads (``None``: in a main process but not in one started
-            by ``multiprocessing``, e.g. a vector-env worker; see :mod:`dsg_gym.splat.threads`). The
-            images are the same either way.
+        parallel: run the kernels on numba's threads. ``None``: where threads are allowed (a main process,
+            not one started by ``multiprocessing`` such as a vector-env worker), each render takes the threaded
+            or the single-threaded kernels, whichever has been faster lately
+            (:class:`~dsg_gym.splat.threads.ThreadChooser`: threads stall when other work holds a core);
+            see :mod:`dsg_gym.splat.threads`. The images are the same either way.
 
     Raising ``alpha_min``/``t_min`` or lowering ``sh_degree`` trades accuracy for speed
     (``benchmarks/pareto.py`` measures the trade).
@@ -158,6 +164,8 @@ class SceneRenderer:
         if parallel not in (None, True, False):
             raise ValueError(f"parallel must be None, True or False, got {parallel!r}")
         self.parallel = parallel
+        #: chooses threaded or single-threaded kernels per render by their measured speed (``parallel=None``)
+        self.threads = ThreadChooser()
         self._consts = raster.make_consts(np.float32, alpha_min, t_min)
         self.alpha_min, self.t_min = float(alpha_min), float(t_min)
         self.background = background
@@ -226,6 +234,7 @@ class SceneRenderer:
             incr.sh_to_rgb(bg.means, np.eye(3), self._campos[v], sh, self._sh_degree, self._bg_rgb[v])
         self._state = None  # (channels key, poses, object arrays, buffers)
         self._bg_lists = {}  # layout -> the background's packed tile lists
+        self._bg_render = None  # (layout, accumulators, transmittance) of the background alone
 
     # ----------------------------------------------------------------------------------------
     def _channels(self, rgb: bool, mask: bool, depth: bool) -> tuple[int, int, int, int]:
@@ -256,7 +265,7 @@ class SceneRenderer:
             if dirty is not None:
                 dirty |= tmask
             t, q, Rm = t_all[k], q_all[k], R_all[k]
-            incr.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
+            rigid.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
                               st["quats"][s:e])
             pr = _project(st["means"][s:e], st["quats"][s:e], self._obj_scales[s:e], self._obj_opac[s:e],
                           self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min,
@@ -283,7 +292,8 @@ class SceneRenderer:
         is renormalised) or ``[K, 4, 4]`` object-to-world rigid transforms (the rotation is re-orthonormalised)."""
         poses = _rigid(poses, self.K)
         layout = self._channels(rgb, mask, depth)
-        par = parallel_allowed(self.parallel)
+        t0 = time.perf_counter()
+        par = self._parallel()
         composite = incr.composite_merged if par else incr.composite_merged_serial
         st = self._state
         full = st is None or st["layout"] != layout or not incremental
@@ -317,7 +327,7 @@ class SceneRenderer:
         else:
             tiles = np.flatnonzero(dirty.reshape(-1)).astype(np.int64)
         if incremental and "bg_out" not in st:
-            self._background_cache(st, composite, par)
+            st["bg_out"], st["bg_T"] = self.background_render(layout)
         if tiles.size:
             if dirty is None:
                 b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
@@ -335,7 +345,14 @@ class SceneRenderer:
                       self.height, self._consts, bool(incremental), *cache, st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
-        return self._outputs(st, layout, tiles)
+        out = self._outputs(st, layout, tiles)
+        self.threads.record(par, time.perf_counter() - t0, tiles.size + _FIXED_WORK)
+        return out
+
+    def _parallel(self) -> bool:
+        """Threads for this render: as ``parallel`` says, or (``None``) as :attr:`threads` chooses."""
+        allowed = parallel_allowed(self.parallel)
+        return self.threads.choose(allowed) if self.parallel is None else allowed
 
     def _background_lists(self, layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The background's tile lists as records with ``layout``'s channels, in compositing order
@@ -351,17 +368,27 @@ class SceneRenderer:
             self._bg_lists = {layout: (rec, rect, rows)}  # one layout at a time (they are large)
         return self._bg_lists[layout]
 
-    def _background_cache(self, st, composite, par: bool) -> None:
-        """Render the background alone (every tile) into ``st["bg_out"]``, ``st["bg_T"]``."""
-        tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
-        st["bg_out"] = np.zeros_like(st["out"])
-        st["bg_T"] = np.ones_like(st["T"])
-        b = st["proj"]
-        none = np.zeros(tiles.size + 1, np.int64)
-        plan = incr.plan_tiles(tiles, self._bg_bins[0], none, False, nb.get_num_threads() if par else 1)
-        composite(*plan, st["bg_rec"], st["bg_rect"], st["bg_rows"], self._bg_bins[0], b.means2d, b.conics,
-                  st["opac"], st["colors"], b.rects, b.depths, none, none[:0], self.tiles_x, self.tiles_y, self.width,
-                  self.height, self._consts, False, st["bg_out"], st["bg_T"], st["bg_out"], st["bg_T"])
+    def background_render(self, layout) -> tuple[np.ndarray, np.ndarray]:
+        """The background alone composited on every tile with ``layout``'s channels (:meth:`_channels`):
+        accumulators ``[V,H,W,D]`` and transmittance ``[V,H,W]``, built once per layout (read-only)."""
+        if self._bg_render is None or self._bg_render[0] != layout:
+            par = parallel_allowed(self.parallel)
+            composite = incr.composite_merged if par else incr.composite_merged_serial
+            rec, rect, rows = self._background_lists(layout)
+            V, D = self.V, max(layout[0], 1)
+            out = np.zeros((V, self.height, self.width, D), np.float32)
+            T = np.ones((V, self.height, self.width), np.float32)
+            tiles = np.arange(V * self.tiles_x * self.tiles_y, dtype=np.int64)
+            none = np.zeros(tiles.size + 1, np.int64)
+            plan = incr.plan_tiles(tiles, self._bg_bins[0], none, False, nb.get_num_threads() if par else 1)
+            composite(*plan, rec, rect, rows, self._bg_bins[0], np.zeros((V, 0, 2), np.float32),
+                      np.zeros((V, 0, 3), np.float32), np.zeros((1, 0), np.float32), np.zeros((V, 0, D), np.float32),
+                      np.zeros((V, 0, 4), np.int32), np.zeros((V, 0), np.float32), none, np.zeros(0, np.int32),
+                      self.tiles_x, self.tiles_y, self.width, self.height, self._consts, False, out, T, out, T)
+            out.flags.writeable = False
+            T.flags.writeable = False
+            self._bg_render = (layout, out, T)
+        return self._bg_render[1], self._bg_render[2]
 
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:
         """The raw accumulators of the last render: colours [V,H,W,D] (no background) and T [V,H,W]."""

@@ -1,5 +1,7 @@
-"""Gymnasium environments. ``DSGWorld-v0`` (:class:`~dsg_gym.envs.dsg_world.DSGWorldEnv`) is registered when
-``dsg_gym`` is imported; importing this package is light (MuJoCo and the renderer load with the env)."""
+"""Gymnasium environments. ``DSGWorld-v0`` (:class:`~dsg_gym.envs.dsg_world.DSGWorldEnv`, with its own vector
+env :class:`~dsg_gym.envs.dsg_world_vector.DSGWorldVectorEnv` for ``gymnasium.make_vec(...,
+vectorization_mode="vector_entry_point")``) is registered when ``dsg_gym`` is imported; importing this package is
+light (MuJoCo and the renderer load with the env)."""
 
 import gymnasium
 
@@ -13,7 +15,10 @@ def register_envs() -> None:
     """Register ``DSGWorld-v0`` (idempotent)."""
     if ENV_ID not in gymnasium.registry:
         gymnasium.register(
-            id=ENV_ID, entry_point="dsg_gym.envs.dsg_world:DSGWorldEnv", max_episode_steps=MAX_EPISODE_STEPS
+            id=ENV_ID,
+            entry_point="dsg_gym.envs.dsg_world:DSGWorldEnv",
+            vector_entry_point="dsg_gym.envs.dsg_world_vector:DSGWorldVectorEnv",
+            max_episode_steps=MAX_EPISODE_STEPS,
         )
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -304,14 +305,18 @@ class DSGWorldEnv(gym.Env):
             self._renderer = self._make_renderer(self.cameras)
         return self._renderer
 
-    def _observe(self) -> dict[str, np.ndarray]:
+    def _observe(self, rendered=None) -> dict[str, np.ndarray]:
+        """The observation; ``rendered``: this env's images (``RenderOutput`` of its V cameras) when a batch
+        renderer made them, else they are rendered here."""
         obs: dict[str, np.ndarray] = {}
         want = {k: k in self.obs_keys for k in ("rgb", "mask", "depth")}
         if any(want.values()):
-            out = self.renderer.render(
-                self._poses, rgb=want["rgb"], mask=want["mask"], depth=want["depth"],
-                incremental=self.incremental,
-            )  # fmt: skip
+            out = rendered
+            if out is None:
+                out = self.renderer.render(
+                    self._poses, rgb=want["rgb"], mask=want["mask"], depth=want["depth"],
+                    incremental=self.incremental,
+                )  # fmt: skip
             for key in ("rgb", "mask", "depth"):
                 if want[key]:
                     img = getattr(out, key)
@@ -352,6 +357,11 @@ class DSGWorldEnv(gym.Env):
         return as_poses7(value, self.K, f"options[{name!r}]")
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        info = self._start_episode(seed, options)
+        return self._observe(), info
+
+    def _start_episode(self, seed, options) -> dict[str, Any]:
+        """``reset`` without the observation: checks ``options``, seeds, samples the start and goal; the info."""
         if options is not None and not isinstance(options, Mapping):
             raise ValueError(f"options must be a dict, got {type(options).__name__}")
         options = dict(options or {})
@@ -368,8 +378,7 @@ class DSGWorldEnv(gym.Env):
             goal = self.task.sample_goal(rng, start)
         self._poses, self._goal, self._steps = start, goal, 0
         report = self.physics.check(start, distance=False)
-        info = self._info(np.zeros(self.K, bool), report, collided=False, settled=False)
-        return self._observe(), info
+        return self._info(np.zeros(self.K, bool), report, collided=False, settled=False)
 
     def _info(self, rejected, report, collided: bool, settled: bool, errors=None) -> dict[str, Any]:
         pe, re = self.task.errors(self._poses, self._goal) if errors is None else errors
@@ -438,6 +447,12 @@ class DSGWorldEnv(gym.Env):
         return self._goal.copy()
 
     def step(self, action):
+        reward, terminated, truncated, info = self._transition(action)
+        return self._observe(), reward, terminated, truncated, info
+
+    def _transition(self, action) -> tuple[float, bool, bool, dict[str, Any]]:
+        """``step`` without the observation: ``(reward, terminated, truncated, info)``; a bad action raises
+        ``ValueError`` before anything changes."""
         if self._poses is None:
             raise gym.error.ResetNeeded("call reset() before step()")
         a = self._check_action(action)
@@ -464,7 +479,7 @@ class DSGWorldEnv(gym.Env):
         reward, success = self.task.reward(self._poses, self._goal, collided, errors)
         truncated = self.max_episode_steps is not None and self._steps >= self.max_episode_steps
         info = self._info(rejected, report, collided, settled, errors)
-        return self._observe(), reward, success, bool(truncated and not success), info
+        return reward, success, bool(truncated and not success), info
 
     def _reject(self, cand, moved, report, bounds_only: bool, previous=None):
         """Undo the moves of the moved objects involved in a violation until the configuration is valid."""
@@ -482,6 +497,16 @@ class DSGWorldEnv(gym.Env):
             rejected[bad] = True
             report = self.physics.check(cand, distance=False)
         return cand, rejected, report
+
+    def _sibling(self) -> DSGWorldEnv:
+        """Another env on the same world, cameras, physics proxy and spaces with its own episode state and
+        random generator (the vector env's members; the proxy holds no state between calls)."""
+        other = copy.copy(self)
+        other._renderer = other._view_renderer = None
+        other._poses = other._goal = None
+        other._steps = 0
+        other._np_random = other._np_random_seed = None
+        return other
 
     def close(self):
         self._renderer = None

@@ -34,10 +34,10 @@ assert 1 << _TILE_BITS == TILE
 
 
 @nb.njit(cache=True, inline="always")
-def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
+def _copy_uncovered(c, ca, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
                     bg_colors, bg_T, acc, trans, row_done, b_rows, cover):
     """Fill the tile pixels no object Gaussian can reach from the background-only render and mark them
-    finished; returns how many. Leaves in b_rows [>= list length, 16] each listed object Gaussian's row spans
+    finished (the cache's camera is ``ca``); returns how many. Leaves in b_rows [>= list length, 16] each listed object Gaussian's row spans
     (:func:`span_rows`), which its compositing reuses; cover [16] is scratch."""
     D = acc.shape[1]
     for ly in range(TILE):
@@ -58,8 +58,8 @@ def _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off
                 continue
             p = ly * TILE + lx
             for d in range(D):
-                acc[p, d] = bg_colors[c, py0 + ly, px0 + lx, d]
-            trans[p] = bg_T[c, py0 + ly, px0 + lx]
+                acc[p, d] = bg_colors[ca, py0 + ly, px0 + lx, d]
+            trans[p] = bg_T[ca, py0 + ly, px0 + lx]
             row_done[ly] |= np.int64(1) << lx
             n += 1
     return n
@@ -107,16 +107,17 @@ def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b
                     acc, trans, row_done, xc, yc, b_rows, cover):
     T = tiles_x * tiles_y
     c = ct // T
+    ca = c % ((a_off.shape[0] - 1) // T)  # the background's camera: several scenes may share one background
     px0, py0, pw, ph = reset_tile(ct - c * T, tiles_x, width, height, acc, trans, row_done, xc, yc)
     npix = pw * ph
     cb = 0 if b_op.shape[0] == 1 else c
     ndone = 0
-    i = a_off[ct]
-    ie = a_off[ct + 1]
+    i = a_off[ct - (c - ca) * T]
+    ie = a_off[ct - (c - ca) * T + 1]
     j0 = j = b_off[ct]
     je = b_off[ct + 1]
     if use_cache:
-        ndone = _copy_uncovered(c, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
+        ndone = _copy_uncovered(c, ca, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
                                 bg_colors, bg_T, acc, trans, row_done, b_rows, cover)
     while (i < ie or j < je) and ndone < npix:
         if j >= je or (i < ie and a_rec[i, 6] <= b_depth[c, b_gauss[j]]):
@@ -219,10 +220,11 @@ def composite_merged(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_
     ``order[starts[k]:starts[k + 1]]`` (:func:`plan_tiles`).
 
     Background ``a``: its tile lists as records (:func:`pack_lists`: a_rec [E, 8 + D], a_rect [E, 4], row
-    spans a_rows [E, 16]) and CSR offsets a_off [C*T+1]. Objects ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in
+    spans a_rows [E, 16]) and CSR offsets a_off [Ca*T+1]; with the cache, C may be a multiple of Ca (scenes that
+    share the background: camera c composites over the background's camera ``c % Ca``), else Ca = C. Objects ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in
     {1, C}), colors [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
 
-    ``use_cache``: reuse a background-only render (bg_colors [C,H,W,D], bg_T [C,H,W]; ignored
+    ``use_cache``: reuse a background-only render (bg_colors [Ca,H,W,D], bg_T [Ca,H,W]; ignored
     otherwise). A pixel that no object Gaussian's footprint reaches (the row spans where its alpha
     can reach alpha_min, with the 1 px margin of ``row_pixel_range``) receives exactly the
     background-only sequence of blends, so its accumulators are copied from the cache and marked
@@ -259,117 +261,6 @@ def mark_tiles(rects, tiles_x, dirty):
             for ty in range(rects[c, i, 2] // TILE, rects[c, i, 3] // TILE + 1):
                 for tx in range(x0 // TILE, x1 // TILE + 1):
                     dirty[c, ty * tiles_x + tx] = True
-
-
-@nb.njit(cache=True, inline="always")
-def _unit_quat_to_rot(q, R):
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    R[0, 1] = 2.0 * (x * y - w * z)
-    R[0, 2] = 2.0 * (x * z + w * y)
-    R[1, 0] = 2.0 * (x * y + w * z)
-    R[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    R[1, 2] = 2.0 * (y * z - w * x)
-    R[2, 0] = 2.0 * (x * z - w * y)
-    R[2, 1] = 2.0 * (y * z + w * x)
-    R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
-
-
-@nb.njit(cache=True, inline="always")
-def _unit(q):
-    """Normalise q [4] in place with w >= 0; False for a zero or non-finite quaternion."""
-    m = 0.0
-    for i in range(4):
-        if not math.isfinite(q[i]):
-            return False
-        m = max(m, abs(q[i]))
-    if not (m > 0.0):
-        return False
-    n = 0.0
-    for i in range(4):
-        q[i] /= m  # scale first: no overflow for huge finite quaternions
-        n += q[i] * q[i]
-    n = math.sqrt(n)
-    if m * n <= 1e-12:  # as dsg_gym.poses.quat_normalize: a near-zero quaternion is an error
-        return False
-    sgn = -1.0 if q[0] < 0.0 else 1.0
-    for i in range(4):
-        q[i] = sgn * q[i] / n
-    return True
-
-
-@nb.njit(cache=True)
-def rigid_from_pose7(p7, q_out, R_out, t_out):
-    """Poses [K,7] (x y z qw qx qy qz) -> unit quaternions (w >= 0) [K,4], rotations [K,3,3],
-    translations [K,3]; returns the index of the first pose with a zero/non-finite quaternion or a
-    non-finite position, else -1."""
-    for k in range(p7.shape[0]):
-        for i in range(3):
-            t_out[k, i] = p7[k, i]
-            if not math.isfinite(p7[k, i]):
-                return k
-        for i in range(4):
-            q_out[k, i] = p7[k, 3 + i]
-        if not _unit(q_out[k]):
-            return k
-        _unit_quat_to_rot(q_out[k], R_out[k])
-    return -1
-
-
-@nb.njit(cache=True)
-def rigid_from_matrices(M, q_out, R_out, t_out):
-    """Rigid transforms [K,4,4] -> (as ``rigid_from_pose7``); the quaternion comes from the rotation block
-    by Shepperd's method and the rotation is rebuilt from it (consistent and orthonormal even if the
-    block drifted). Returns the index of the first non-finite matrix or rotation with det <= 0, else -1."""
-    for k in range(M.shape[0]):
-        r = M[k]
-        for i in range(4):
-            for j in range(4):
-                if not math.isfinite(r[i, j]):
-                    return k
-        det = (r[0, 0] * (r[1, 1] * r[2, 2] - r[1, 2] * r[2, 1]) - r[0, 1] * (r[1, 0] * r[2, 2] - r[1, 2] * r[2, 0])
-               + r[0, 2] * (r[1, 0] * r[2, 1] - r[1, 1] * r[2, 0]))
-        if not (det > 0.0):
-            return k
-        tr = r[0, 0] + r[1, 1] + r[2, 2]
-        q = q_out[k]
-        if tr >= r[0, 0] and tr >= r[1, 1] and tr >= r[2, 2]:
-            q[0], q[1], q[2], q[3] = 1.0 + tr, r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
-        elif r[0, 0] >= r[1, 1] and r[0, 0] >= r[2, 2]:
-            q[0], q[1], q[2], q[3] = r[2, 1] - r[1, 2], 1.0 + r[0, 0] - r[1, 1] - r[2, 2], r[0, 1] + r[1, 0], r[0, 2] + r[2, 0]
-        elif r[1, 1] >= r[2, 2]:
-            q[0], q[1], q[2], q[3] = r[0, 2] - r[2, 0], r[0, 1] + r[1, 0], 1.0 + r[1, 1] - r[0, 0] - r[2, 2], r[1, 2] + r[2, 1]
-        else:
-            q[0], q[1], q[2], q[3] = r[1, 0] - r[0, 1], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], 1.0 + r[2, 2] - r[0, 0] - r[1, 1]
-        if not _unit(q):
-            return k
-        _unit_quat_to_rot(q, R_out[k])
-        for i in range(3):
-            t_out[k, i] = r[i, 3]
-    return -1
-
-
-@nb.njit(cache=True)
-def rigid_transform(means, quats, R, t, q, out_means, out_quats):
-    """out = pose applied to Gaussians: means R m + t (float64 math), quats q * quat (Hamilton).
-
-    means [n,3], quats [n,4] wxyz (float32); R [3,3], t [3], q [4] float64.
-    """
-    for i in range(means.shape[0]):
-        mx = np.float64(means[i, 0])
-        my = np.float64(means[i, 1])
-        mz = np.float64(means[i, 2])
-        out_means[i, 0] = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + t[0]
-        out_means[i, 1] = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + t[1]
-        out_means[i, 2] = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + t[2]
-        bw = np.float64(quats[i, 0])
-        bx = np.float64(quats[i, 1])
-        by = np.float64(quats[i, 2])
-        bz = np.float64(quats[i, 3])
-        out_quats[i, 0] = q[0] * bw - q[1] * bx - q[2] * by - q[3] * bz
-        out_quats[i, 1] = q[0] * bx + q[1] * bw + q[2] * bz - q[3] * by
-        out_quats[i, 2] = q[0] * by - q[1] * bz + q[2] * bw + q[3] * bx
-        out_quats[i, 3] = q[0] * bz + q[1] * by - q[2] * bx + q[3] * bw
 
 
 @nb.njit(cache=True)
@@ -438,6 +329,60 @@ def finish_tiles(tiles, tiles_x, tiles_y, width, height, out, T, bg_rgb, o_rgb, 
 
 
 @nb.njit(cache=True)
+def _bin_select(c, rects, dc, tiles_x, T, slices, active, counts, sel):
+    """Camera c: count the flagged tiles' entries into counts [C*T] and list the Gaussians that reach a flagged
+    tile in sel[c] (index order); returns how many."""
+    n = 0
+    for k in range(active.shape[0]):
+        if not active[k]:
+            continue
+        for i in range(slices[k], slices[k + 1]):
+            x0 = rects[c, i, 0]
+            x1 = rects[c, i, 1]
+            if x1 < x0:
+                continue
+            hit = False
+            for ty in range(rects[c, i, 2] >> _TILE_BITS, (rects[c, i, 3] >> _TILE_BITS) + 1):
+                for tx in range(x0 >> _TILE_BITS, (x1 >> _TILE_BITS) + 1):
+                    t = ty * tiles_x + tx
+                    if dc[t]:
+                        counts[c * T + t] += 1
+                        hit = True
+            if hit:
+                sel[c, n] = i
+                n += 1
+    return n
+
+
+@nb.njit(cache=True)
+def _bin_fill(c, n, keys, rects, dc, tiles_x, T, sel, fill, gauss):
+    """Camera c: write its selected Gaussians into the flagged tiles' lists in depth order."""
+    sub_keys = np.empty((1, n), dtype=keys.dtype)
+    sub_rects = np.empty((1, n, 4), dtype=rects.dtype)
+    for k in range(n):
+        sub_keys[0, k] = keys[c, sel[c, k]]
+        for j in range(4):
+            sub_rects[0, k, j] = rects[c, sel[c, k], j]
+    order, _ = depth_order(sub_keys, sub_rects)
+    for k in range(n):
+        i = sel[c, order[0, k]]
+        for ty in range(rects[c, i, 2] >> _TILE_BITS, (rects[c, i, 3] >> _TILE_BITS) + 1):
+            for tx in range(rects[c, i, 0] >> _TILE_BITS, (rects[c, i, 1] >> _TILE_BITS) + 1):
+                t = ty * tiles_x + tx
+                if dc[t]:
+                    gauss[fill[c * T + t]] = i
+                    fill[c * T + t] += 1
+
+
+@nb.njit(cache=True)
+def _bin_offsets(counts):
+    offsets = np.zeros(counts.shape[0] + 1, dtype=np.int64)
+    for t in range(counts.shape[0]):
+        offsets[t + 1] = offsets[t] + counts[t]
+    return offsets
+
+
+@nb.njit(cache=True)
 def bin_tiles(keys, rects, dirty, tiles_x, tiles_y, slices, active):
     """Per-tile depth-ordered Gaussian lists of the tiles flagged in ``dirty`` [C, T] only.
 
@@ -449,57 +394,34 @@ def bin_tiles(keys, rects, dirty, tiles_x, tiles_y, slices, active):
     index order): the same stable sort, applied to the Gaussians that reach a flagged tile only (a
     stable sort of a subsequence is the subsequence of the stable sort).
     """
-    C = rects.shape[0]
-    N = rects.shape[1]
-    T = tiles_x * tiles_y
+    C, N, T = rects.shape[0], rects.shape[1], tiles_x * tiles_y
     counts = np.zeros(C * T, dtype=np.int64)
     sel = np.empty((C, N), dtype=np.int64)
     nsel = np.zeros(C, dtype=np.int64)
     for c in range(C):
-        n = 0
-        dc = dirty[c]
-        for k in range(active.shape[0]):
-            if not active[k]:
-                continue
-            for i in range(slices[k], slices[k + 1]):
-                x0 = rects[c, i, 0]
-                x1 = rects[c, i, 1]
-                if x1 < x0:
-                    continue
-                hit = False
-                for ty in range(rects[c, i, 2] >> _TILE_BITS, (rects[c, i, 3] >> _TILE_BITS) + 1):
-                    for tx in range(x0 >> _TILE_BITS, (x1 >> _TILE_BITS) + 1):
-                        t = ty * tiles_x + tx
-                        if dc[t]:
-                            counts[c * T + t] += 1
-                            hit = True
-                if hit:
-                    sel[c, n] = i
-                    n += 1
-        nsel[c] = n
-    offsets = np.zeros(C * T + 1, dtype=np.int64)
-    for t in range(C * T):
-        offsets[t + 1] = offsets[t] + counts[t]
+        nsel[c] = _bin_select(c, rects, dirty[c], tiles_x, T, slices, active, counts, sel)
+    offsets = _bin_offsets(counts)
     gauss = np.empty(offsets[C * T], dtype=np.int32)
     fill = offsets[:-1].copy()
     for c in range(C):
-        n = nsel[c]
-        dc = dirty[c]
-        sub_keys = np.empty((1, n), dtype=keys.dtype)
-        sub_rects = np.empty((1, n, 4), dtype=rects.dtype)
-        for k in range(n):
-            sub_keys[0, k] = keys[c, sel[c, k]]
-            for j in range(4):
-                sub_rects[0, k, j] = rects[c, sel[c, k], j]
-        order, _ = depth_order(sub_keys, sub_rects)
-        for k in range(n):
-            i = sel[c, order[0, k]]
-            for ty in range(rects[c, i, 2] >> _TILE_BITS, (rects[c, i, 3] >> _TILE_BITS) + 1):
-                for tx in range(rects[c, i, 0] >> _TILE_BITS, (rects[c, i, 1] >> _TILE_BITS) + 1):
-                    t = ty * tiles_x + tx
-                    if dc[t]:
-                        gauss[fill[c * T + t]] = i
-                        fill[c * T + t] += 1
+        _bin_fill(c, nsel[c], keys, rects, dirty[c], tiles_x, T, sel, fill, gauss)
+    return offsets, gauss
+
+
+@nb.njit(parallel=True, cache=True)
+def bin_tiles_parallel(keys, rects, dirty, tiles_x, tiles_y, slices, active):
+    """:func:`bin_tiles` with the cameras on numba's threads (the same lists)."""
+    C, N, T = rects.shape[0], rects.shape[1], tiles_x * tiles_y
+    counts = np.zeros(C * T, dtype=np.int64)
+    sel = np.empty((C, N), dtype=np.int64)
+    nsel = np.zeros(C, dtype=np.int64)
+    for c in nb.prange(C):
+        nsel[c] = _bin_select(c, rects, dirty[c], tiles_x, T, slices, active, counts, sel)
+    offsets = _bin_offsets(counts)
+    gauss = np.empty(offsets[C * T], dtype=np.int32)
+    fill = offsets[:-1].copy()
+    for c in nb.prange(C):
+        _bin_fill(c, nsel[c], keys, rects, dirty[c], tiles_x, T, sel, fill, gauss)
     return offsets, gauss
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 
-__all__ = ["min_parallel_work", "parallel_allowed"]
+__all__ = ["min_parallel_work", "parallel_allowed", "ThreadChooser"]
 
 _forked_after_openmp = False
 
@@ -70,3 +70,73 @@ def min_parallel_work() -> int:
     except ValueError:
         return 20_000
     return 1_000 if layer in ("omp", "tbb") else 20_000
+
+
+class ThreadChooser:
+    """Chooses, call by call, between a kernel sequence's threaded and single-threaded twins (same bits) by
+    their measured time per unit of work, so that rendering stays fast when other work shares the cores.
+
+    A parallel region waits for its slowest thread: when another thread or process holds one of the cores, a
+    two-thread region stalls for the scheduler's time slices and the threaded path becomes many times slower
+    than the single-threaded one. The chooser times each path (``record``: seconds per unit of work, the
+    median of the last three calls; each path's first call is a warm-up and not counted), takes the faster one
+    (``choose``) and now and then tries the other again for ``probe_calls`` calls: after ``probe`` calls at
+    first, then after twice as many each time the other path stays slower (at most ``max_probe``), so a slow
+    path costs little once it is known. On an idle machine it settles on the threaded path and then costs
+    ``probe_calls`` single-threaded calls every ``max_probe`` calls.
+
+    Only where threads are allowed at all (:func:`parallel_allowed`); otherwise it always answers ``False``.
+    """
+
+    def __init__(self, probe: int = 16, max_probe: int = 128, probe_calls: int = 2):
+        self.probe, self.max_probe, self.probe_calls = int(probe), int(max_probe), int(probe_calls)
+        self.samples: dict[bool, list[float]] = {True: [], False: []}
+        self._warm = {True: False, False: False}
+        self._interval = self.probe
+        self._since = 0
+        self._probing = 0  # calls left in the current probe
+
+    def cost(self, parallel: bool) -> float | None:
+        """Seconds per unit of work of a path (median of its last three calls), ``None`` before any."""
+        s = sorted(self.samples[parallel][-3:])
+        return s[len(s) // 2] if s else None
+
+    def best(self) -> bool:
+        t, s = self.cost(True), self.cost(False)
+        return True if t is None or s is None else t <= s
+
+    def choose(self, allowed: bool = True) -> bool:
+        if not allowed:
+            return False
+        for path in (True, False):  # measure both paths first
+            if len(self.samples[path]) < 2:
+                return path
+        best = self.best()
+        if self._probing:
+            return not best
+        if self._since >= self._interval:
+            self._since = 0
+            self._probing = self.probe_calls
+            self.samples[not best].clear()
+            return not best
+        return best
+
+    def record(self, parallel: bool, seconds: float, work: float) -> None:
+        """Time one call took on the path ``choose`` returned, for ``work`` units (> 0)."""
+        if not self._warm[parallel]:
+            self._warm[parallel] = True
+            return
+        before = self.best()
+        self.samples[parallel] = self.samples[parallel][-2:] + [float(seconds) / max(float(work), 1e-9)]
+        if not self._probing:
+            self._since += 1
+            return
+        if parallel == before:  # a probe's call
+            return
+        self._probing -= 1
+        if self._probing:
+            return
+        if self.best() == before:  # the probe lost again: wait longer before the next one
+            self._interval = min(2 * self._interval, self.max_probe)
+        else:  # the probe won: the paths swap, probe the old one soon
+            self._interval = self.probe

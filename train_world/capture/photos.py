@@ -7,6 +7,9 @@
     PHOTOS/state2/...                            the same for the second state
     PHOTOS/objects.json                          optional names: [{"id": 1, "name": "mug"}, ...] or {"1": "mug"}
 
+A state may start as one video (``PHOTOS/state1/walk.mp4``): ``dsg-capture --extract-frames N`` samples it to
+``images/`` plus ``frames.json`` (:mod:`train_world.capture.video`); masks are then made for those frames.
+
 Every object id must mean the same object in every view of both states, and every object must appear in
 both states. :func:`read_photo_capture` checks the whole folder (every image and mask is decoded once) and
 raises :class:`PhotoCaptureError` naming the offending file and what to do; :func:`load_photo` gives one
@@ -25,18 +28,24 @@ from PIL import Image, ImageOps
 from train_world.capture.loader import CaptureError, ObjectInfo
 
 __all__ = [
+    "FRAMES_FILE",
     "IMAGE_SUFFIXES",
     "MIN_VIEWS",
     "PHOTO_STATES",
     "PhotoCapture",
     "PhotoCaptureError",
     "PhotoView",
+    "VIDEO_SUFFIXES",
     "load_photo",
     "read_photo_capture",
 ]
 
 PHOTO_STATES = ("state1", "state2")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+#: a state folder may hold one video of these instead of images/ (:mod:`train_world.capture.video`)
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
+#: written beside images/ when the images are a video's frames (:mod:`train_world.capture.video`)
+FRAMES_FILE = "frames.json"
 #: fewest photos per state that structure from motion can work with
 MIN_VIEWS = 3
 
@@ -69,6 +78,8 @@ class PhotoCapture:
     root: Path
     states: dict[str, tuple[PhotoView, ...]]
     objects: tuple[ObjectInfo, ...]
+    #: states whose images are frames of a video, in order (their folder has ``frames.json``)
+    sequences: frozenset[str] = frozenset()
 
     def views(self) -> tuple[PhotoView, ...]:
         """All views, state by state."""
@@ -153,6 +164,13 @@ def _list_names(stems: list[str], folder: Path, suffix: str) -> str:
 
 def _state_views(root: Path, state: str) -> tuple[tuple[PhotoView, ...], dict[int, Path]]:
     sdir = _folder(root / state, f"a photo capture needs {PHOTO_STATES[0]}/ and {PHOTO_STATES[1]}/ folders")
+    if not (sdir / "images").is_dir():
+        videos = sorted(p.name for p in sdir.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
+        if videos:
+            raise PhotoCaptureError(
+                f"{sdir}: holds a video ({videos[0]}) but no images/; sample it to frames first "
+                f"(dsg-capture --extract-frames 40 {root}), then make masks/ for those frames"
+            )
     idir = _folder(sdir / "images", "put this state's photos (JPEG or PNG) there")
     mdir = _folder(sdir / "masks", "put one object-id mask PNG per photo there, with the photo's file stem")
     images = _files(idir, IMAGE_SUFFIXES, "image")
@@ -281,4 +299,5 @@ def read_photo_capture(root: str | Path) -> PhotoCapture:
             )
         names = {k: given[k] for k in ids}
     objects = tuple(ObjectInfo(k, names[k]) for k in ids)
-    return PhotoCapture(root=root, states=states, objects=objects)
+    seq = frozenset(st for st in PHOTO_STATES if (root / st / FRAMES_FILE).is_file())
+    return PhotoCapture(root=root, states=states, objects=objects, sequences=seq)

@@ -3,8 +3,9 @@
 Both states go into one reconstruction so that they share one world frame: the objects (which move between
 the states) are masked out of the features, so only the static background is matched. One camera model
 with lens distortion (``SIMPLE_RADIAL``) is shared by all photos, or one per state when the states were
-taken at different sizes. Matching is exhaustive; the largest reconstruction is kept and at least
-:data:`MIN_REGISTERED` of each state's photos must be in it.
+taken at different sizes. Photos are matched exhaustively; a state of video frames is matched with its
+neighbours in time and the states with each other (:func:`sequence_pairs`). The largest reconstruction is kept and
+at least :data:`MIN_REGISTERED` of each state's photos must be in it.
 
 Poses come out as OpenCV world-to-camera matrices ``[4,4]`` (float64) in the reconstruction's arbitrary
 frame and scale; points are the background's 3D points ``[N,3]``. Deterministic for a given input (seeded
@@ -52,6 +53,10 @@ MAX_FEATURE_IMAGE_SIZE = 2000
 #: object masks are grown by this fraction of the longest image side (at least 2 px) before masking
 #: features, so that no feature straddles an object's outline
 MASK_MARGIN = 0.01
+#: video frames: each is matched with this many next frames of its state ...
+SEQUENCE_OVERLAP = 10
+#: ... and every view with every CROSS_STEP-th view of the other state
+CROSS_STEP = 3
 #: reprojection errors (pixels) above which observations are dropped by the final refinement, pass by pass
 REFINE_MAX_ERRORS = (1.5, 1.0)
 
@@ -161,6 +166,28 @@ def _prepare(capture: PhotoCapture, work: Path, progress: bool) -> tuple[Path, P
     return images, masks, names
 
 
+def sequence_pairs(capture: PhotoCapture, overlap: int = SEQUENCE_OVERLAP, cross_step: int = CROSS_STEP):
+    """Image pairs to match when a state's photos are a video's frames (``capture.sequences``): within such a
+    state each frame with the next ``overlap`` (the walk closes on itself, so the last frames pair with the
+    first); within a state of photos every pair; across the states each view with every ``cross_step``-th view of
+    the other state, which ties both states into one frame. Names as pycolmap sees them (``state/stem.png``)."""
+    pairs: set[tuple[str, str]] = set()
+    names = {st: [f"{st}/{v.stem}.png" for v in capture.states[st]] for st in PHOTO_STATES}
+    for st, ns in names.items():
+        n = len(ns)
+        for i in range(n):
+            others = (
+                [(i + k) % n for k in range(1, min(overlap, n - 1) + 1)]
+                if st in capture.sequences
+                else range(i + 1, n)
+            )
+            pairs.update((ns[i], ns[j]) for j in others if j != i)
+    a, b = (names[st] for st in PHOTO_STATES)
+    pairs.update((x, y) for x in a for j, y in enumerate(b) if j % cross_step == 0)
+    pairs.update((x, y) for i, x in enumerate(a) if i % cross_step == 0 for y in b)
+    return sorted((min(p), max(p)) for p in pairs)
+
+
 def _options(pycolmap, num_threads: int):
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = 1  # one thread: with more, image ids follow completion order (not deterministic)
@@ -254,10 +281,23 @@ def run_sfm(
         )
         timings["features_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        say(f"matching: {len(names) * (len(names) - 1) // 2} pairs (exhaustive)")
-        pycolmap.match_exhaustive(
-            db, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
-        )
+        if capture.sequences:
+            pairs = sequence_pairs(capture)
+            pair_file = work / "pairs.txt"
+            pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs), encoding="utf-8")
+            say(f"matching: {len(pairs)} pairs (video frames: neighbours in time, and across the states)")
+            pycolmap.match_image_pairs(
+                db,
+                matching_options=matching,
+                pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pair_file),
+                verification_options=verification,
+                device=pycolmap.Device.cpu,
+            )
+        else:
+            say(f"matching: {len(names) * (len(names) - 1) // 2} pairs (exhaustive)")
+            pycolmap.match_exhaustive(
+                db, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu
+            )
         timings["matching_s"] = time.perf_counter() - t
         t = time.perf_counter()
         (work / "sparse").mkdir(exist_ok=True)

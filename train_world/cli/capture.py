@@ -4,10 +4,13 @@ Examples::
 
     dsg-capture photos/ --out data/my_table                       # units arbitrary (recorded as "unknown")
     dsg-capture photos/ --out data/my_table --metres-per-unit 0.62 --overwrite
+    dsg-capture photos/ --extract-frames 40     # state1/walk.mp4 -> state1/images/frame_0000.jpg ... (then masks)
 
 ``photos/`` holds ``state1/`` and ``state2/``, each with ``images/`` (JPEG or PNG) and ``masks/`` (one PNG of
 object ids per photo, same file stem; 0 = background, 1..K the same object in every photo of both states),
 plus an optional ``objects.json`` naming the ids. See ``data/my_table/report.json`` for how well it went.
+A state may instead hold one video: ``--extract-frames N`` samples it to N sharp frames in ``images/``; make the
+masks for those frames, then run ``dsg-capture`` as for photos.
 """
 
 from __future__ import annotations
@@ -35,7 +38,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "photos", type=Path, help="photo capture folder (state1/ and state2/ with images/ and masks/)"
     )
-    p.add_argument("--out", type=Path, required=True, help="output capture folder")
+    p.add_argument("--out", type=Path, help="output capture folder")
+    p.add_argument(
+        "--extract-frames",
+        type=int,
+        metavar="N",
+        help="instead of building a capture: sample the video in each state folder to N sharp frames in "
+        "images/ (then make masks/ for them)",
+    )
     p.add_argument(
         "--metres-per-unit",
         type=float,
@@ -50,7 +60,12 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.extract_frames is not None:
+        return _extract(args)
+    if args.out is None:
+        parser.error("--out is required (or --extract-frames N to sample videos to frames)")
     if args.metres_per_unit is not None and not args.metres_per_unit > 0:
         print(
             f"dsg-capture: error: --metres-per-unit must be a positive number, got {args.metres_per_unit}",
@@ -81,6 +96,28 @@ def main(argv: list[str] | None = None) -> int:
         f"{report['mean_reprojection_error_px']:.2f} px; units {report['units']}; objects: {objs}) in "
         f"{report['timings_s']['total_s']:.1f} s"
     )
+    return 0
+
+
+def _extract(args) -> int:
+    from train_world.capture.photos import PhotoCaptureError
+    from train_world.capture.video import extract_capture_frames
+
+    try:
+        done = extract_capture_frames(
+            args.photos,
+            args.extract_frames,
+            overwrite=args.overwrite,
+            progress=not args.quiet,
+            log=None if args.quiet else (lambda m: print(f"dsg-capture: {m}", file=sys.stderr, flush=True)),
+        )
+    except PhotoCaptureError as e:
+        print(f"dsg-capture: error: {e}", file=sys.stderr)
+        return 2
+    for state, paths in done.items():
+        print(f"dsg-capture: {state}: {len(paths)} frames in {paths[0].parent}")
+    print(f"dsg-capture: next: one object-id mask PNG per frame in <state>/masks/ (same stems), then "
+          f"dsg-capture {args.photos} --out CAPTURE")  # fmt: skip
     return 0
 
 

@@ -70,6 +70,14 @@ def _parser() -> argparse.ArgumentParser:
         help="with --as-photos: Gaussian sensor noise of SIGMA grey levels (0..255 scale) plus a slight blur "
         "(default 0: clean JPEGs)",
     )
+    p.add_argument(
+        "--photo-exposure",
+        type=float,
+        default=0.0,
+        metavar="E",
+        help="with --as-photos: each photo's brightness scaled by a gain drawn from [1 - E, 1 + E], as a phone's "
+        "auto-exposure varies (default 0)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -89,8 +97,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.scene or args.out is None:
         _parser().error("--scene and --out are required (or use --list)")
-    if args.photo_noise and not args.as_photos:
-        _parser().error("--photo-noise needs --as-photos")
+    if (args.photo_noise or args.photo_exposure) and not args.as_photos:
+        _parser().error("--photo-noise and --photo-exposure need --as-photos")
+    if not 0 <= args.photo_exposure < 1:
+        _parser().error(f"--photo-exposure must be in [0, 1), got {args.photo_exposure}")
     from train_world.synth.generate import GenerateConfig, generate_scene  # imports MuJoCo
 
     try:
@@ -115,7 +125,14 @@ def main(argv: list[str] | None = None) -> int:
             if args.as_photos:
                 from train_world.synth.photos import generate_photo_capture
 
-                generate_photo_capture(spec, out, cfg, overwrite=args.overwrite, noise=args.photo_noise)
+                generate_photo_capture(
+                    spec,
+                    out,
+                    cfg,
+                    overwrite=args.overwrite,
+                    noise=args.photo_noise,
+                    exposure=args.photo_exposure,
+                )
             else:
                 generate_scene(spec, out, cfg, overwrite=args.overwrite)
             print(f"{spec.name}: wrote {out} in {time.perf_counter() - t0:.1f} s")

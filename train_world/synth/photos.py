@@ -35,13 +35,23 @@ PHOTO_STATES = ("state1", "state2")
 NOISE_BLUR_RADIUS = 0.5
 
 
-def degrade_photo(rgb: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
-    """A slightly blurred copy of ``rgb`` (uint8 ``[H,W,3]``) with Gaussian sensor noise of ``noise`` grey
-    levels (standard deviation on the 0..255 scale); ``noise <= 0`` returns ``rgb`` unchanged."""
-    if noise <= 0:
+def degrade_photo(
+    rgb: np.ndarray, noise: float, rng: np.random.Generator, exposure: float = 0.0
+) -> np.ndarray:
+    """What a phone adds to ``rgb`` (uint8 ``[H,W,3]``): an exposure gain drawn uniformly from
+    ``[1 - exposure, 1 + exposure]`` (auto-exposure differing from photo to photo), then a slight blur and
+    Gaussian sensor noise of ``noise`` grey levels (standard deviation on the 0..255 scale). With ``noise <= 0``
+    and ``exposure <= 0`` it returns ``rgb`` unchanged."""
+    if noise <= 0 and exposure <= 0:
         return rgb
-    img = Image.fromarray(rgb).filter(ImageFilter.GaussianBlur(NOISE_BLUR_RADIUS))
-    a = np.asarray(img, dtype=np.float64) + rng.normal(0.0, float(noise), size=rgb.shape)
+    a = rgb.astype(np.float64)
+    if exposure > 0:
+        a = a * rng.uniform(1.0 - exposure, 1.0 + exposure)
+    if noise > 0:
+        blurred = Image.fromarray(np.clip(np.rint(a), 0, 255).astype(np.uint8)).filter(
+            ImageFilter.GaussianBlur(NOISE_BLUR_RADIUS)
+        )
+        a = np.asarray(blurred, dtype=np.float64) + rng.normal(0.0, float(noise), size=rgb.shape)
     return np.clip(np.rint(a), 0, 255).astype(np.uint8)
 
 
@@ -57,6 +67,7 @@ def write_photos_from_capture(
     *,
     quality: int = 92,
     noise: float = 0.0,
+    exposure: float = 0.0,
     seed: int = 0,
 ) -> None:
     """Write the photo-capture layout of the module docstring under ``out`` from the synthetic capture
@@ -65,6 +76,8 @@ def write_photos_from_capture(
         raise ValueError(f"JPEG quality must be in 1..100, got {quality}")
     if noise < 0:
         raise ValueError(f"photo noise must be >= 0 grey levels, got {noise}")
+    if not 0 <= exposure < 1:
+        raise ValueError(f"photo exposure jitter must be in [0, 1), got {exposure}")
     capture, out = Path(capture), Path(out)
     scene = json.loads((capture / "scene.json").read_text(encoding="utf-8"))
     for state in PHOTO_STATES:
@@ -76,7 +89,8 @@ def write_photos_from_capture(
             label = f"{int(seed) & 0xFFFFFFFF}/{state}/{stem}".encode()
             rng = np.random.default_rng(zlib.crc32(label))
             atomic_write_bytes(
-                out / state / "images" / f"{stem}.jpg", _jpeg(degrade_photo(rgb, noise, rng), quality)
+                out / state / "images" / f"{stem}.jpg",
+                _jpeg(degrade_photo(rgb, noise, rng, exposure), quality),
             )
             atomic_write_bytes(
                 out / state / "masks" / f"{stem}.png", (capture / state / fr["mask_path"]).read_bytes()
@@ -92,6 +106,7 @@ def generate_photo_capture(
     overwrite: bool = False,
     quality: int = 92,
     noise: float = 0.0,
+    exposure: float = 0.0,
 ) -> Path:
     """Render ``scene`` into ``out/ground_truth`` and write its photo capture beside it, atomically (the
     whole of ``out`` appears only when complete)."""
@@ -101,5 +116,7 @@ def generate_photo_capture(
     out = Path(out)
     with staged_directory(out, overwrite=overwrite) as stage:
         generate_scene(scene, stage / "ground_truth", cfg)
-        write_photos_from_capture(stage / "ground_truth", stage, quality=quality, noise=noise, seed=cfg.seed)
+        write_photos_from_capture(
+            stage / "ground_truth", stage, quality=quality, noise=noise, exposure=exposure, seed=cfg.seed
+        )
     return out

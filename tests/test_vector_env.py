@@ -1,0 +1,183 @@
+"""DSGWorld-v0's own vector env, the batch renderer and the thread chooser."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode
+
+import dsg_gym  # noqa: F401  registers DSGWorld-v0
+from dsg_gym.batch_renderer import BatchSceneRenderer
+from dsg_gym.envs.dsg_world_vector import DSGWorldVectorEnv
+from dsg_gym.splat.threads import ThreadChooser
+
+VARIABLE = ("penetrating_pairs", "out_of_bounds")
+
+
+def _rollout(mode, n, steps, seed=3, vector_kwargs=None, **kw):
+    env = gym.make_vec(
+        "DSGWorld-v0", num_envs=n, vectorization_mode=mode, vector_kwargs=vector_kwargs or {}, **kw
+    )
+    hist = [env.reset(seed=seed)]
+    rng = np.random.default_rng(1)
+    for _ in range(steps):
+        hist.append(env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32)))
+    env.close()
+    return hist
+
+
+def _assert_same(x, y, path=""):
+    if isinstance(x, dict):
+        assert set(k for k in x if k not in VARIABLE) <= set(y), path
+        for k in x:
+            if k in VARIABLE or k.startswith("_"):
+                continue
+            _assert_same(x[k], y[k], f"{path}/{k}")
+    elif isinstance(x, (tuple, list)):
+        for i, (a, b) in enumerate(zip(x, y, strict=True)):
+            _assert_same(a, b, f"{path}[{i}]")
+    elif isinstance(x, np.ndarray) and x.dtype == object:
+        for i, (a, b) in enumerate(zip(x, y, strict=True)):
+            _assert_same(a, b, f"{path}[{i}]")
+    else:
+        a, b = np.asarray(x), np.asarray(y)
+        assert a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b), path
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"obs": ("rgb", "mask", "depth", "poses"), "max_episode_steps": 12},
+        {"cameras": [0, 1], "obs": ("rgb", "mask"), "action_mode": "absolute", "max_episode_steps": 7},
+    ],
+    ids=["one-camera", "two-cameras-absolute"],
+)
+def test_same_as_sync_vector_env_bit_for_bit(kw):
+    """Observations, rewards, flags and infos equal SyncVectorEnv's over episodes with autoresets."""
+    ours = _rollout("vector_entry_point", 3, 30, **kw, width=48, height=40)
+    sync = _rollout("sync", 3, 30, **kw, width=48, height=40)
+    assert sum(int(np.sum(h[2] | h[3])) for h in ours[1:]) >= 3  # autoresets happened
+    _assert_same(ours, sync)
+
+
+def test_same_step_autoreset_matches_sync():
+    kw = {"obs": ("rgb", "poses"), "max_episode_steps": 5, "width": 32, "height": 32}
+    ours = _rollout("vector_entry_point", 2, 12, autoreset_mode=AutoresetMode.SAME_STEP, **kw)
+    sync = _rollout("sync", 2, 12, vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP}, **kw)
+    ends = [h for h in ours[1:] if h[4].get("_final_obs", np.zeros(2, bool)).any()]
+    assert ends
+    _assert_same(ours, sync)
+
+
+def test_a_bad_action_raises_and_leaves_the_vector_env_usable():
+    env = gym.make_vec(
+        "DSGWorld-v0", num_envs=3, vectorization_mode="vector_entry_point", width=32, height=32
+    )
+    obs, _ = env.reset(seed=0)
+    a = np.zeros(env.action_space.shape, np.float32)
+    a[0, 0] = 1.0
+    bad = a.copy()
+    bad[2, 1] = np.nan
+    with pytest.raises(ValueError, match="env 2"):
+        env.step(bad)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(a[:2])
+    for e, p in zip(env.unwrapped.envs, obs["poses"], strict=True):
+        np.testing.assert_array_equal(e.poses, p)  # nothing moved
+    obs2, *_ = env.step(a)
+    assert not np.array_equal(obs2["poses"][0], obs["poses"][0])
+    np.testing.assert_array_equal(obs2["poses"][1:], obs["poses"][1:])
+
+
+def test_vector_env_checks_its_arguments():
+    with pytest.raises(ValueError, match="num_envs"):
+        DSGWorldVectorEnv(0)
+    with pytest.raises(ValueError, match="DISABLED"):
+        DSGWorldVectorEnv(2, autoreset_mode=AutoresetMode.DISABLED)
+    env = DSGWorldVectorEnv(2, width=16, height=16)
+    with pytest.raises(gym.error.ResetNeeded):
+        env.step(np.zeros(env.action_space.shape, np.float32))
+    with pytest.raises(ValueError, match="seeds"):
+        env.reset(seed=[1, 2, 3])
+
+
+def test_batch_renderer_equals_one_renderer_per_scene():
+    env = gym.make("DSGWorld-v0", cameras=[0, 2], width=40, height=36).unwrapped
+    env.reset(seed=0)
+    E = 4
+    batch = BatchSceneRenderer(env.renderer, E)
+    singles = [env._make_renderer(env.cameras) for _ in range(E)]
+    rng = np.random.default_rng(0)
+    poses = np.stack([env.poses] * E)
+    for step in range(12):
+        for e in range(E):
+            for k in range(env.K):
+                if rng.random() < 0.5:
+                    poses[e, k, :3] += rng.normal(0, 0.01, 3)
+                    poses[e, k, 3:] += rng.normal(0, 0.05, 4)
+        fresh = rng.random(E) < 0.2 if step else None
+        out = batch.render(poses, rgb=True, mask=True, depth=step % 2 == 0, fresh=fresh)
+        for e in range(E):
+            ref = singles[e].render(poses[e], rgb=True, mask=True, depth=step % 2 == 0)
+            for key in ("rgb", "mask", "depth", "alpha"):
+                a, b = getattr(out, key), getattr(ref, key)
+                assert (a is None) == (b is None)
+                if a is not None:
+                    np.testing.assert_array_equal(a[e], b, err_msg=f"step {step} scene {e} {key}")
+    with pytest.raises(ValueError, match="shape"):
+        batch.render(poses[:2])
+    bad = poses.copy()
+    bad[1, 0, 3:] = 0.0
+    with pytest.raises(ValueError, match="scene 1 object 0"):
+        batch.render(bad)
+
+
+def test_thread_chooser_follows_the_faster_path_and_backs_off():
+    c = ThreadChooser(probe=4, max_probe=16)
+    assert c.choose(allowed=False) is False
+    speed = {True: 1.0, False: 3.0}  # seconds per unit: threads faster
+    picks = []
+    for _ in range(200):
+        p = c.choose()
+        picks.append(p)
+        c.record(p, speed[p], 1.0)
+    assert c.best() is True and sum(picks[-100:]) >= 85  # probes of the slow path are rare
+    speed = {True: 10.0, False: 3.0}  # another process takes a core: threads stall
+    picks = []
+    for _ in range(200):
+        p = c.choose()
+        picks.append(p)
+        c.record(p, speed[p], 1.0)
+    assert c.best() is False and sum(picks[-100:]) <= 15
+
+
+def test_automatic_threads_give_the_same_images():
+    envs = [gym.make("DSGWorld-v0", width=48, height=48).unwrapped for _ in range(2)]
+    envs[1].renderer.parallel = False
+    for e in envs:
+        e.reset(seed=5)
+    rng = np.random.default_rng(2)
+    for _ in range(40):
+        a = rng.uniform(-1, 1, envs[0].action_space.shape).astype(np.float32)
+        o = [e.step(a)[0] for e in envs]
+        np.testing.assert_array_equal(o[0]["rgb"], o[1]["rgb"])
+        np.testing.assert_array_equal(o[0]["mask"], o[1]["mask"])
+
+
+def test_stable_baselines3_trains_on_the_vector_env():
+    pytest.importorskip("stable_baselines3", reason="the rl extra (stable-baselines3) is not installed")
+    from stable_baselines3 import PPO
+
+    from dsg_gym.envs.sb3 import DSGWorldSB3VecEnv
+
+    venv = DSGWorldSB3VecEnv(num_envs=4, width=64, height=64, obs=("rgb", "poses"), max_episode_steps=10)
+    PPO("MultiInputPolicy", venv, n_steps=16, batch_size=32, n_epochs=1, seed=0).learn(64)
+    venv.reset()
+    ended = None
+    for _ in range(12):
+        obs, rewards, dones, infos = venv.step(np.stack([venv.action_space.sample() for _ in range(4)]))
+        assert rewards.shape == (4,) and obs["rgb"].shape == (4, 64, 64, 3)
+        if dones.any():
+            ended = infos[int(np.flatnonzero(dones)[0])]
+            break
+    assert ended is not None and ended["TimeLimit.truncated"] is True
+    assert ended["terminal_observation"]["rgb"].shape == (64, 64, 3)

@@ -41,6 +41,13 @@ from train_world.capture.format import (
     transforms_header,
 )
 from train_world.capture.frame import FrameError, fit_table_plane, table_frame
+from train_world.capture.marker import (
+    DICTIONARY,
+    MarkerObservation,
+    detect_marker,
+    marker_detector,
+    marker_scale,
+)
 from train_world.capture.motions import ObjectMotion, estimate_object_motion
 from train_world.capture.photos import (
     PHOTO_STATES,
@@ -89,10 +96,17 @@ def _silhouette(ids: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> SilhouetteVi
 
 
 def _write_views(
-    capture: PhotoCapture, sfm: SfmResult, stage: Path, progress: bool
+    capture: PhotoCapture,
+    sfm: SfmResult,
+    stage: Path,
+    progress: bool,
+    marker: list | None = None,
+    marker_id=None,
 ) -> tuple[dict[str, Undistorter], dict[str, list[ViewFeatures]], dict[str, list[SilhouetteView]]]:
-    """Undistorted photos and masks into ``stage/<state>/``; object features and silhouettes per state."""
+    """Undistorted photos and masks into ``stage/<state>/``; object features and silhouettes per state; with a
+    list ``marker``, the views that see the ArUco marker are appended to it (:class:`MarkerObservation`)."""
     unds, feats, sils = {}, {}, {}
+    detector = marker_detector() if marker is not None else None
     total = sum(len(sfm.registered[s]) for s in PHOTO_STATES)
     with tqdm(
         total=total, desc="dsg-capture: undistorting + object features", unit="photo", disable=not progress
@@ -113,6 +127,10 @@ def _write_views(
                 gray = np.asarray(Image.fromarray(rgb).convert("L"))
                 feats[s].append(extract_view_features(gray, ids, und.K, w2c, ex, FEATURE_SIZE))
                 sils[s].append(_silhouette(ids, und.K, w2c))
+                if marker is not None:
+                    seen = detect_marker(rgb, marker_id, detector)
+                    if seen is not None and (not marker or seen[0] == marker[0].marker_id):
+                        marker.append(MarkerObservation(v.key, seen[0], seen[1], und.K, w2c))
                 bar.update(1)
     return unds, feats, sils
 
@@ -139,15 +157,24 @@ def build_capture(
     out: str | os.PathLike,
     *,
     metres_per_unit: float | None = None,
+    marker_size: float | None = None,
+    marker_id: int | None = None,
     overwrite: bool = False,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> dict:
     """Turn the photo capture ``photos`` into a standard capture at ``out`` (module docstring); returns the
     report written to ``out/report.json``. Bad input raises :class:`PhotoCaptureError` (a ``ValueError``)
-    naming the file or object; an existing non-empty ``out`` raises ``FileExistsError`` unless ``overwrite``."""
+    naming the file or object; an existing non-empty ``out`` raises ``FileExistsError`` unless ``overwrite``.
+
+    Metric scale: ``metres_per_unit``, or ``marker_size`` (the black square's edge in metres of an ArUco
+    ``DICT_4X4_50`` marker lying in the scene, id ``marker_id`` or the lowest id seen; :mod:`.marker`)."""
     if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
         raise ValueError(f"metres per unit must be a positive number, got {metres_per_unit}")
+    if marker_size is not None and not (np.isfinite(marker_size) and marker_size > 0):
+        raise ValueError(f"marker size must be a positive number of metres, got {marker_size}")
+    if marker_size is not None and metres_per_unit is not None:
+        raise ValueError("give the scale once: a marker size or metres per unit, not both")
     say = log or (lambda _m: None)
     t_start = time.perf_counter()
     capture = read_photo_capture(photos)
@@ -162,8 +189,9 @@ def build_capture(
     ):
         sfm = run_sfm(capture, work, progress=progress, log=say)
         t = time.perf_counter()
+        marker_obs = [] if marker_size is not None else None
         with quiet_colmap():
-            unds, feats, sils = _write_views(capture, sfm, stage, progress)
+            unds, feats, sils = _write_views(capture, sfm, stage, progress, marker_obs, marker_id)
         t_views = time.perf_counter() - t
         centres = np.array([np.linalg.inv(w)[:3, 3] for w in sfm.world_to_camera.values()])
         anchors = [object_centre(sils[s], o.id)[0] for s in PHOTO_STATES for o in capture.objects]
@@ -193,10 +221,24 @@ def build_capture(
                 seed=o.id,
             )
         t_motions = time.perf_counter() - t
-        frame = table_frame(
-            plane, sfm.points, np.array([m.centre for m in motions.values()]), centres, metres_per_unit
-        )
-        report = _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos)
+        obj_centres = np.array([m.centre for m in motions.values()])
+        scale_info = None
+        if marker_obs is not None:
+            ms = marker_scale(marker_obs, marker_size)  # metres per unit of the reconstruction
+            unit = table_frame(
+                plane, sfm.points, obj_centres, centres, None
+            ).scale  # frame units per SfM unit
+            metres_per_unit = ms.metres_per_unit / unit
+            scale_info = {
+                "source": f"ArUco marker {DICTIONARY} id {ms.marker_id}, {ms.size_m} m, seen in {ms.views} photos",
+                "marker_edge_units": round(ms.edge_units * unit, 6),
+                "marker_reprojection_rms_px": round(ms.rms_px, 4),
+            }
+            say(
+                f"scale: {scale_info['source']}; {metres_per_unit:.5f} m per unit, corners {ms.rms_px:.2f} px rms"
+            )
+        frame = table_frame(plane, sfm.points, obj_centres, centres, metres_per_unit)
+        report = _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info)
         report["timings_s"] = {
             **{k: round(v, 2) for k, v in sfm.timings.items()},
             "undistort_and_features_s": round(t_views, 2),
@@ -207,7 +249,7 @@ def build_capture(
     return report
 
 
-def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos) -> dict:
+def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info=None) -> dict:
     poses, rel, objects_report = {"state1": [], "state2": []}, [], []
     for o in capture.objects:
         m = motions[o.id]
@@ -231,6 +273,8 @@ def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos) -
         doc["frames"] = frames
         atomic_write_json(stage / s / "transforms.json", doc)
     scale_source = "--metres-per-unit" if metres_per_unit else "none (units are arbitrary)"
+    if scale_info:
+        scale_source = scale_info["source"]
     scene = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -291,6 +335,7 @@ def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos) -
             "metres_per_unit": metres_per_unit,
             "note": "unit = median camera distance from the table origin, times --metres-per-unit when given; "
             "measure a known length in these units and pass --metres-per-unit = metres / units to make it metric",
+            **({k: v for k, v in scale_info.items() if k != "source"} if scale_info else {}),
         },
         "objects": objects_report,
     }

@@ -4,6 +4,7 @@ Examples::
 
     dsg-capture photos/ --out data/my_table                       # units arbitrary (recorded as "unknown")
     dsg-capture photos/ --out data/my_table --metres-per-unit 0.62 --overwrite
+    dsg-capture photos/ --out data/my_table --marker-size 0.06  # metric, from an ArUco marker in the photos
     dsg-capture photos/ --extract-frames 40     # state1/walk.mp4 -> state1/images/frame_0000.jpg ... (then masks)
 
 ``photos/`` holds ``state1/`` and ``state2/``, each with ``images/`` (JPEG or PNG) and ``masks/`` (one PNG of
@@ -54,6 +55,17 @@ def _parser() -> argparse.ArgumentParser:
         help="metric scale: metres per unit of the estimated frame (unit = median camera distance from the "
         "table origin); without it the capture's units are recorded as arbitrary ('unknown')",
     )
+    p.add_argument(
+        "--marker-size",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="metric scale from an ArUco marker (OpenCV DICT_4X4_50) lying in the scene: the edge of its black "
+        "square in metres; it must be seen whole in at least two photos",
+    )
+    p.add_argument(
+        "--marker-id", type=int, default=None, help="the marker's id (default: the lowest id seen)"
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
@@ -66,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
         return _extract(args)
     if args.out is None:
         parser.error("--out is required (or --extract-frames N to sample videos to frames)")
+    if args.marker_size is not None and args.metres_per_unit is not None:
+        parser.error("give the scale once: --marker-size or --metres-per-unit")
+    if args.marker_size is not None and not args.marker_size > 0:
+        parser.error(f"--marker-size must be a positive number of metres, got {args.marker_size}")
     if args.metres_per_unit is not None and not args.metres_per_unit > 0:
         print(
             f"dsg-capture: error: --metres-per-unit must be a positive number, got {args.metres_per_unit}",
@@ -82,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
             args.photos,
             args.out,
             metres_per_unit=args.metres_per_unit,
+            marker_size=args.marker_size,
+            marker_id=args.marker_id,
             overwrite=args.overwrite,
             progress=not args.quiet,
             log=None if args.quiet else say,

@@ -78,6 +78,14 @@ def _parser() -> argparse.ArgumentParser:
         help="with --as-photos: each photo's brightness scaled by a gain drawn from [1 - E, 1 + E], as a phone's "
         "auto-exposure varies (default 0)",
     )
+    p.add_argument(
+        "--marker",
+        type=float,
+        default=0.0,
+        metavar="METRES",
+        help="lay an ArUco marker (OpenCV DICT_4X4_50, id 0) with a black square of this edge on the table "
+        "(needs opencv-python-headless; default 0: none)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -114,6 +122,7 @@ def main(argv: list[str] | None = None) -> int:
             shadows=args.shadows,
             lighting=args.lighting,
             supersample=args.supersample,
+            marker=args.marker,
             progress=not args.quiet,
         )
         if args.scene == "all":

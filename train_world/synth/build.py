@@ -155,6 +155,34 @@ class _Builder:
         return g
 
     # ------------------------------------------------------------------ scene parts
+    def marker(self, side: float) -> None:
+        """An ArUco marker (``DICT_4X4_50`` id 0) of black-square edge ``side`` on a white card a quarter wider,
+        flat on the table a quarter of the way in from its (+x, -y) corner; visual only (no contacts), background
+        in the masks."""
+        import cv2
+
+        cells = 6  # 4x4 bits and the black border
+        px = 16 * cells
+        img = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 0, px)
+        pad = px // 8
+        card = np.pad(img, pad, constant_values=255)
+        rgb = np.repeat(card[:, :, None], 3, axis=2)
+        mat = self.ms.add_material(name="marker_mat")
+        mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = self.texture_2d(np.ascontiguousarray(rgb))
+        mat.specular = 0.0
+        mat.shininess = 0.0
+        half = side * card.shape[0] / px / 2
+        (x0, x1), (y0, y1) = self.scene.table_bounds
+        self.ms.worldbody.add_geom(
+            name="aruco_marker",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[half, half, 0.0005],
+            pos=[x1 - 0.25 * (x1 - x0), y0 + 0.25 * (y1 - y0), 0.0005],
+            material="marker_mat",
+            contype=0,
+            conaffinity=0,
+        )
+
     def surface(self) -> None:
         s = self.scene.surface
         sx, sy = s.size
@@ -279,15 +307,23 @@ class _Builder:
 
 
 def build_scene(
-    spec: SceneSpec, width: int = 128, height: int = 128, shadows: bool = False, lighting: str = "soft"
+    spec: SceneSpec,
+    width: int = 128,
+    height: int = 128,
+    shadows: bool = False,
+    lighting: str = "soft",
+    marker: float = 0.0,
 ) -> BuiltScene:
     """Compile ``spec`` into a MuJoCo model with one movable camera :data:`RENDER_CAMERA`.
 
     ``width``/``height`` size the offscreen buffer; ``shadows`` turns on cast shadows of every light;
-    ``lighting`` is a key of :data:`LIGHTING` (see the module docstring).
+    ``lighting`` is a key of :data:`LIGHTING` (see the module docstring); ``marker`` > 0 lays an ArUco marker
+    of that side (metres) on the table (``_Builder.marker``).
     """
     b = _Builder(spec, width, height, shadows, lighting)
     b.surface()
+    if marker > 0:
+        b.marker(marker)
     b.walls()
     b.props()
     body_names = b.objects()

@@ -59,6 +59,8 @@ class GenerateConfig:
     shadows: bool = False
     lighting: str = "soft"
     supersample: int = 4
+    #: side of an ArUco marker (``DICT_4X4_50`` id 0, black square edge, metres) lying on the table; 0: none
+    marker: float = 0.0
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -74,6 +76,10 @@ class GenerateConfig:
         if self.lighting not in LIGHTING:
             raise ValueError(
                 f"GenerateConfig.lighting must be one of {sorted(LIGHTING)}, got {self.lighting!r}"
+            )
+        if not (0.0 <= float(self.marker) <= 0.3):
+            raise ValueError(
+                f"GenerateConfig.marker must be a side in metres in [0, 0.3], got {self.marker!r}"
             )
         if (self.test_states > 0) != (self.test_views > 0):
             raise ValueError("test states need test views (and vice versa): set both > 0 or both 0")
@@ -118,6 +124,11 @@ def _scene_json(
             "shadows": bool(cfg.shadows),
             "lighting": cfg.lighting,
             "supersample": int(cfg.supersample),
+            **(
+                {"marker": {"dictionary": "DICT_4X4_50", "id": 0, "size_m": float(cfg.marker)}}
+                if cfg.marker
+                else {}
+            ),
             "mujoco_version": mujoco.__version__,
         },
         "objects": [
@@ -153,7 +164,9 @@ def generate_scene(
     out = Path(out)
     with staged_directory(out, overwrite=overwrite) as stage:
         ss = int(cfg.supersample)
-        built = build_scene(scene, cfg.width * ss, cfg.height * ss, cfg.shadows, cfg.lighting)
+        built = build_scene(
+            scene, cfg.width * ss, cfg.height * ss, cfg.shadows, cfg.lighting, marker=cfg.marker
+        )
         data = mujoco.MjData(built.model)
         states = sample_states(scene, rng_for(cfg.seed, "states"), cfg.test_states)
         for name, poses in states.items():

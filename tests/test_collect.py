@@ -110,10 +110,11 @@ def test_random_roundtrip_exact(random_ref, monkeypatch):
     assert env.observation_space == ds.observation_space and env.spec.max_episode_steps == 6
 
 
-def test_expert_async_two_envs(tmp_path):
-    res = collect(
-        tmp_path, env_kwargs=KW, policy="expert", episodes=3, num_envs=2, seed=1, max_episode_steps=60
-    )
+@pytest.mark.parametrize("vectorization", ["auto", "async"])
+def test_expert_two_envs(tmp_path, vectorization):
+    """Two envs in DSGWorld-v0's own vector env (auto) or in worker processes (async): the same episodes."""
+    res = collect(tmp_path, env_kwargs=KW, policy="expert", episodes=3, num_envs=2, seed=1, max_episode_steps=60,
+                  vectorization=vectorization)  # fmt: skip
     ds = load(res.path)
     eps = _episodes(ds)
     assert res.success_rate == 1.0 and all(e.terminations[-1] for e in eps)

@@ -91,13 +91,38 @@ def test_a_bad_action_raises_and_leaves_the_vector_env_usable():
 def test_vector_env_checks_its_arguments():
     with pytest.raises(ValueError, match="num_envs"):
         DSGWorldVectorEnv(0)
-    with pytest.raises(ValueError, match="DISABLED"):
-        DSGWorldVectorEnv(2, autoreset_mode=AutoresetMode.DISABLED)
+    with pytest.raises(ValueError, match="autoreset_mode"):
+        DSGWorldVectorEnv(2, autoreset_mode="sometimes")
     env = DSGWorldVectorEnv(2, width=16, height=16)
     with pytest.raises(gym.error.ResetNeeded):
         env.step(np.zeros(env.action_space.shape, np.float32))
     with pytest.raises(ValueError, match="seeds"):
         env.reset(seed=[1, 2, 3])
+
+
+def test_disabled_autoreset_and_reset_mask():
+    env = DSGWorldVectorEnv(
+        3, width=24, height=24, max_episode_steps=2, autoreset_mode=AutoresetMode.DISABLED
+    )
+    with pytest.raises(ValueError, match="first reset"):
+        env.reset(seed=0, options={"reset_mask": np.array([True, False, False])})
+    obs, _ = env.reset(seed=0)
+    zero = np.zeros(env.action_space.shape, np.float32)
+    for _ in range(2):
+        obs, _, _, trunc, _ = env.step(zero)
+    assert trunc.all()
+    obs2, _, _, _, _ = env.step(zero)  # no autoreset: the ended envs step on
+    np.testing.assert_array_equal(obs2["poses"], obs["poses"])
+    mask = np.array([False, True, False])
+    obs3, infos = env.reset(seed=[None, 7, None], options={"reset_mask": mask})
+    single = gym.make("DSGWorld-v0", width=24, height=24)
+    ref, _ = single.reset(seed=7)
+    np.testing.assert_array_equal(obs3["poses"][1], ref["poses"])
+    np.testing.assert_array_equal(obs3["rgb"][1], ref["rgb"])
+    np.testing.assert_array_equal(obs3["poses"][[0, 2]], obs["poses"][[0, 2]])
+    assert infos["_success"].tolist() == [False, True, False]
+    with pytest.raises(ValueError, match="reset_mask"):
+        env.reset(options={"reset_mask": [1, 0, 1]})
 
 
 def test_batch_renderer_equals_one_renderer_per_scene():

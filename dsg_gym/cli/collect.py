@@ -24,7 +24,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--policy", default="random", help="random | expert | module:callable (obs -> action)")
     p.add_argument("--episodes", type=int, required=True)
-    p.add_argument("--num-envs", type=int, default=1, help="envs in the vector env (async for > 1)")
+    p.add_argument("--num-envs", type=int, default=1, help="envs in the vector env (default 1)")
+    p.add_argument(
+        "--vectorization",
+        choices=("auto", "own", "async"),
+        default="auto",
+        help="for --num-envs > 1: the env's own vector env in this process when it has one (auto, own: "
+        "DSGWorld-v0's batch renderer) or an AsyncVectorEnv of worker processes (async); the same episodes",
+    )
     p.add_argument("--out", required=True, help="output root (a Minari datasets folder)")
     p.add_argument("--seed", type=int, default=None, help="base seed (default: random, recorded)")
     p.add_argument("--dataset-id", default=None, help="Minari dataset id (default <env>/<policy>-v0)")
@@ -67,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         res = collect(
             args.out, env_id=args.env, env_kwargs=env_kwargs, policy=args.policy, episodes=args.episodes,
-            num_envs=args.num_envs, seed=args.seed, dataset_id=dataset_id, max_episode_steps=args.max_episode_steps,
+            num_envs=args.num_envs, vectorization=args.vectorization, seed=args.seed, dataset_id=dataset_id,
+            max_episode_steps=args.max_episode_steps,
             image_encoding=args.image_encoding, resume=args.resume, overwrite=args.overwrite,
             shard_episodes=args.shard_episodes, backend=args.backend, ray_workers=args.ray_workers,
             ray_address=args.ray_address, keep_shards=args.keep_shards, progress=not args.no_progress,

@@ -21,15 +21,17 @@ def collect_episodes(
     shard_root: Path,
     *,
     num_envs: int = 1,
+    vectorization: str = "auto",
     shard_episodes: int = 16,
     flush_seconds: float = 30.0,
     on_episode: Callable[[EpisodeRecord], None] | None = None,
     on_steps: Callable[[int], None] | None = None,
 ) -> dict[str, int]:
     """Run the episodes ``indices`` of a run (``settings``: see :func:`collect`'s ``run.json``) in a vector
-    env of ``num_envs`` and write them as shards under ``shard_root``: a shard every ``shard_episodes``
-    finished episodes or ``flush_seconds``, and whatever is finished when the run stops for any reason
-    (error, ``KeyboardInterrupt``). Used by the local backend and by each Ray worker."""
+    env of ``num_envs`` (``vectorization`` as :func:`~dsg_gym.collect.rollout.make_vector_env`) and write them as
+    shards under ``shard_root``: a shard every ``shard_episodes`` finished episodes or ``flush_seconds``, and
+    whatever is finished when the run stops for any reason (error, ``KeyboardInterrupt``). Used by the local
+    backend and by each Ray worker."""
     s = settings
     store = ShardStore(shard_root)
     template = make_env(s["env_id"], s["env_kwargs"], s["max_episode_steps"])
@@ -60,7 +62,7 @@ def collect_episodes(
             make_policy = policy_factory(s["policy"], template)
         except PolicyError as e:
             raise CollectError(str(e)) from e
-        envs = make_vector_env(s["env_id"], s["env_kwargs"], num_envs, s["max_episode_steps"])
+        envs = make_vector_env(s["env_id"], s["env_kwargs"], num_envs, s["max_episode_steps"], vectorization)
         rollout(envs, indices, s["seed"], make_policy, episode, on_steps=on_steps,
                 policy_label=f"policy {policy_name(s['policy'])!r}")  # fmt: skip
         ok = True

@@ -83,14 +83,36 @@ def make_env(env_id: str, env_kwargs: Mapping[str, Any], max_episode_steps: int 
     return gym.make(env_id, **kw)
 
 
+VECTORIZATIONS = ("auto", "own", "async")
+
+
 def make_vector_env(
-    env_id: str, env_kwargs: Mapping[str, Any], num_envs: int, max_episode_steps: int | None = None
+    env_id: str,
+    env_kwargs: Mapping[str, Any],
+    num_envs: int,
+    max_episode_steps: int | None = None,
+    vectorization: str = "auto",
 ) -> gym.vector.VectorEnv:
-    """Sync vector env for one env, async (subprocesses, shared memory) for more; autoreset disabled."""
+    """A vector env with autoreset disabled: a ``SyncVectorEnv`` for one env; for more, the env's own vector env
+    (one process, e.g. ``DSGWorld-v0``'s batch of envs) when it has one (``"auto"``, ``"own"``), else an
+    ``AsyncVectorEnv`` (subprocesses, shared memory; ``"async"``). Every choice gives the same episodes."""
+    if vectorization not in VECTORIZATIONS:
+        raise ValueError(f"vectorization must be one of {VECTORIZATIONS}, got {vectorization!r}")
+    import dsg_gym  # noqa: F401  (registers DSGWorld-v0)
+
     fn = functools.partial(make_env, env_id, dict(env_kwargs), max_episode_steps)
     mode = gym.vector.AutoresetMode.DISABLED
     if num_envs == 1:
         return gym.vector.SyncVectorEnv([fn], autoreset_mode=mode)
+    own = env_id in gym.registry and gym.registry[env_id].vector_entry_point is not None
+    if vectorization == "own" and not own:
+        raise ValueError(f"{env_id} has no vector env of its own; use vectorization 'async'")
+    if own and vectorization != "async":
+        kw = dict(env_kwargs)
+        if max_episode_steps is not None:
+            kw["max_episode_steps"] = int(max_episode_steps)
+        return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point",
+                            autoreset_mode=mode, **kw)  # fmt: skip
     return gym.vector.AsyncVectorEnv([fn] * num_envs, shared_memory=True, autoreset_mode=mode)
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from ..io.atomic import atomic_write_bytes, remove_partial
 from .episodes import collect_episodes
 from .policies import policy_name
-from .rollout import CollectError, EpisodeRecord
+from .rollout import VECTORIZATIONS, CollectError, EpisodeRecord
 from .writer import IMAGE_ENCODINGS, ShardStore, combine_shards, env_spec_for
 
 __all__ = ["WORK_DIR", "CollectResult", "collect", "default_dataset_id"]
@@ -115,6 +115,7 @@ def collect(
     policy: str | Callable = "random",
     episodes: int = 10,
     num_envs: int = 1,
+    vectorization: str = "auto",
     seed: int | None = None,
     dataset_id: str | None = None,
     max_episode_steps: int | None = None,
@@ -134,7 +135,9 @@ def collect(
 
     ``out`` is a Minari datasets root: ``MINARI_DATASETS_PATH=out`` then ``minari.load_dataset(dataset_id)``
     (default id ``<env>/<policy>-v0``, e.g. ``dsgworld/expert-v0``). ``policy``: ``"random"``, ``"expert"``,
-    ``"module:callable"`` or a callable ``obs -> action``. ``num_envs`` > 1 runs an ``AsyncVectorEnv``.
+    ``"module:callable"`` or a callable ``obs -> action``. ``num_envs`` > 1 runs the env's own vector env (one process;
+    ``DSGWorld-v0`` has one) or, for ``vectorization="async"`` or an env without one, an ``AsyncVectorEnv``; the
+    episodes are the same either way.
     ``seed``: base seed (episode ``e`` resets with :func:`~dsg_gym.collect.rollout.episode_seed`; ``None``:
     a random one, recorded). ``image_encoding``: ``"raw"`` (lossless, default) or ``"jpeg"`` (Minari's lossy
     JPEG for uint8 RGB). Finished episodes are kept in shards while running; ``resume=True`` continues an
@@ -146,6 +149,8 @@ def collect(
     t0 = time.monotonic()
     episodes = _positive("episodes", episodes)
     num_envs = _positive("num_envs", num_envs)
+    if vectorization not in VECTORIZATIONS:
+        raise CollectError(f"vectorization must be one of {VECTORIZATIONS}, got {vectorization!r}")
     shard_episodes = _positive("shard_episodes", shard_episodes)
     if max_episode_steps is not None:
         max_episode_steps = _positive("max_episode_steps", max_episode_steps)
@@ -229,6 +234,7 @@ def collect(
                 todo,
                 store.root,
                 num_envs=num_envs,
+                vectorization=vectorization,
                 shard_episodes=shard_episodes,
                 flush_seconds=flush_seconds,
                 on_episode=bar.episode,

@@ -31,7 +31,7 @@ class DSGWorldVectorEnv(VectorEnv):
     | --- | --- | --- |
     | ``num_envs`` | (required) | N >= 1 |
     | ``max_episode_steps`` | 200 | truncation, as ``gymnasium.make``'s ``TimeLimit`` (``None``: never) |
-    | ``autoreset_mode`` | ``NEXT_STEP`` | ``AutoresetMode.NEXT_STEP`` (Gymnasium's default: the step after an episode ends resets that env and ignores its action) or ``AutoresetMode.SAME_STEP`` (reset at once; ``infos["final_obs"]`` (an object array of observation dicts) and ``infos["final_info"]`` (batched like ``infos``) hold the last observation and info, as in Gymnasium's vector envs) |
+    | ``autoreset_mode`` | ``NEXT_STEP`` | ``AutoresetMode.NEXT_STEP`` (Gymnasium's default: the step after an episode ends resets that env and ignores its action), ``AutoresetMode.DISABLED`` (an ended env is reset by ``reset(options={"reset_mask": mask})``; until then it steps on) or ``AutoresetMode.SAME_STEP`` (reset at once; ``infos["final_obs"]`` (an object array of observation dicts) and ``infos["final_info"]`` (batched like ``infos``) hold the last observation and info, as in Gymnasium's vector envs) |
     | any other | | :class:`~dsg_gym.envs.dsg_world.DSGWorldEnv`'s kwargs, the same for every env (``incremental`` is ignored: the batch always renders incrementally, which gives the same images) |
 
     Spaces: ``single_observation_space`` / ``single_action_space`` are the env's; the batched spaces have a leading
@@ -57,10 +57,8 @@ class DSGWorldVectorEnv(VectorEnv):
             autoreset_mode = AutoresetMode(autoreset_mode)
         except ValueError:
             raise ValueError(
-                f"autoreset_mode must be NEXT_STEP or SAME_STEP, got {autoreset_mode!r}"
+                f"autoreset_mode must be NEXT_STEP, SAME_STEP or DISABLED, got {autoreset_mode!r}"
             ) from None
-        if autoreset_mode == AutoresetMode.DISABLED:
-            raise ValueError("autoreset_mode DISABLED is not supported; use NEXT_STEP or SAME_STEP")
         kwargs.pop("incremental", None)
         first = DSGWorldEnv(**kwargs)
         self.envs = [first] + [first._sibling() for _ in range(int(num_envs) - 1)]
@@ -136,8 +134,10 @@ class DSGWorldVectorEnv(VectorEnv):
         return out
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None):
-        """Reset every env: ``seed`` an int (env i gets ``seed + i``, as Gymnasium's vector envs), a list of N
-        seeds or ``None``; ``options`` go to every env (checked before any env changes)."""
+        """Reset the envs: ``seed`` an int (env i gets ``seed + i``, as Gymnasium's vector envs), a list of N
+        seeds or ``None``; ``options`` go to every reset env, except ``reset_mask`` (bool ``[N]``: reset only these
+        envs, the others keep their episode; as Gymnasium's vector envs). Every option is checked before any env
+        changes. ``infos`` hold the reset envs' info (``_key`` masks False for the others)."""
         if seed is None:
             seeds = [None] * self.num_envs
         elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
@@ -146,13 +146,25 @@ class DSGWorldVectorEnv(VectorEnv):
             seeds = list(seed)
             if len(seeds) != self.num_envs:
                 raise ValueError(f"reset: {len(seeds)} seeds for {self.num_envs} envs")
-        # the first env checks the options before anything changes; a bad option raises there
-        infos = [self.envs[0]._start_episode(seeds[0], options)]
-        infos += [e._start_episode(s, options) for e, s in zip(self.envs[1:], seeds[1:])]
-        self._elapsed[:] = 0
-        self._autoreset[:] = False
+        options = dict(options or {})
+        mask = np.asarray(options.pop("reset_mask", np.ones(self.num_envs, bool)))
+        if mask.shape != (self.num_envs,) or mask.dtype != np.bool_:
+            raise ValueError(
+                f"reset: reset_mask must be a bool array of shape ({self.num_envs},), got {mask!r}"
+            )
+        if not self._started and not mask.all():
+            raise ValueError("reset: the first reset must reset every env (no reset_mask)")
+        todo = [int(i) for i in np.flatnonzero(mask)]
+        infos: list[dict[str, Any] | None] = [None] * self.num_envs
+        if (
+            todo
+        ):  # the first env to reset checks the options before any env changes; a bad option raises there
+            for i in todo:
+                infos[i] = self.envs[i]._start_episode(seeds[i], options or None)
+        self._elapsed[mask] = 0
+        self._autoreset[mask] = False
         self._started = True
-        return self._observe(np.ones(self.num_envs, bool)), self._infos(infos)
+        return self._observe(mask.copy()), (self._infos(infos) if todo else {})
 
     def _check_actions(self, actions) -> np.ndarray:
         try:
@@ -209,7 +221,7 @@ class DSGWorldVectorEnv(VectorEnv):
                      "_final_info": done.copy()}  # fmt: skip
             fresh = done.copy()
         obs = self._observe(fresh)
-        self._autoreset = done if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(n, bool)
+        self._autoreset = done if self.autoreset_mode != AutoresetMode.SAME_STEP else np.zeros(n, bool)
         return obs, rewards, terms, truncs, {**self._infos(infos), **extra}
 
     def close_extras(self, **kwargs):

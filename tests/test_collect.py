@@ -214,16 +214,17 @@ def test_cli_module_callable_and_existing_output(tmp_path, capsys):
     assert ds.total_steps == 8 and set(ds[0].observations) == {"mask", "poses", "goal"}
     assert not ds[0].actions.any() and ds[1].truncations[-1]
     assert ds.storage.metadata["algorithm_name"] == "test_collect:zero_policy"
-    assert main(args) == 1  # the dataset exists: refused without --overwrite
+    assert main(args) == 2  # the dataset exists: refused without --overwrite
     assert "already exists" in capsys.readouterr().err
     assert main(args + ["--overwrite"]) == 0
     assert (
         main(
             ["--policy", "no_such_module:f", "--episodes", "1", "--out", str(tmp_path / "b"), "--no-progress"]
         )
-        == 1
+        == 2
     )
     assert "cannot import module 'no_such_module'" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()  # a bad setting writes nothing
     assert main(["--env-kwargs", "{bad", "--episodes", "1", "--out", str(tmp_path)]) == 2
 
 

@@ -60,15 +60,17 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from dsg_gym.collect.policies import policy_name
     from dsg_gym.collect.rollout import CollectError
-    from dsg_gym.collect.run import WORK_DIR, collect, default_dataset_id
+    from dsg_gym.collect.run import WORK_DIR, CollectSettingsError, collect, default_dataset_id
 
     try:
         env_kwargs = json.loads(args.env_kwargs)
     except json.JSONDecodeError as e:
-        print(f"dsg-collect: --env-kwargs is not valid JSON: {e}", file=sys.stderr)
+        print(f"dsg-collect: error: --env-kwargs is not valid JSON ({e})", file=sys.stderr)
         return 2
     if not isinstance(env_kwargs, dict):
-        print("dsg-collect: --env-kwargs must be a JSON object", file=sys.stderr)
+        print(
+            "dsg-collect: error: --env-kwargs must be a JSON object, e.g. '{\"width\": 64}'", file=sys.stderr
+        )
         return 2
     dataset_id = args.dataset_id or default_dataset_id(args.env, policy_name(args.policy))
     try:
@@ -80,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
             shard_episodes=args.shard_episodes, backend=args.backend, ray_workers=args.ray_workers,
             ray_address=args.ray_address, keep_shards=args.keep_shards, progress=not args.no_progress,
         )  # fmt: skip
+    except CollectSettingsError as e:  # nothing was written
+        print(f"dsg-collect: error: {e}", file=sys.stderr)
+        return 2
     except CollectError as e:
         print(f"dsg-collect: error: {e}", file=sys.stderr)
         print(f"dsg-collect: finished episodes are kept under {args.out}/{WORK_DIR}/; fix the cause and re-run "
@@ -92,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"dataset {res.dataset_id}: {res.episodes} episodes, {res.transitions} transitions, success rate "
         f"{res.success_rate:.1%}; this run: {res.new_episodes} episodes, {res.new_transitions} transitions in "
-        f"{res.seconds:.1f} s ({res.transitions_per_second:.0f} transitions/s with start-up)\n"
+        f"{res.seconds:.1f} s ({res.transitions_per_second:.0f} transitions/s overall: env start-up and dataset "
+        "writing included)\n"
         f'written to {res.path}\nload: MINARI_DATASETS_PATH={args.out} python -c "import minari; '
         f"print(minari.load_dataset('{res.dataset_id}'))\""
     )

@@ -10,13 +10,14 @@ res = collect("datasets", policy="expert", episodes=100, num_envs=2, seed=0, env
 
 from .policies import BUILTIN_POLICIES, ExpertPolicy, PolicyError, RandomPolicy, policy_factory
 from .rollout import DEFAULT_INFO_KEYS, CollectError, EpisodeRecord, episode_seed, make_vector_env, rollout
-from .run import CollectResult, collect, default_dataset_id
+from .run import CollectResult, CollectSettingsError, collect, default_dataset_id
 
 __all__ = [
     "BUILTIN_POLICIES",
     "DEFAULT_INFO_KEYS",
     "CollectError",
     "CollectResult",
+    "CollectSettingsError",
     "EpisodeRecord",
     "ExpertPolicy",
     "PolicyError",

@@ -20,7 +20,7 @@ from .policies import policy_name
 from .rollout import VECTORIZATIONS, CollectError, EpisodeRecord
 from .writer import IMAGE_ENCODINGS, ShardStore, combine_shards, env_spec_for
 
-__all__ = ["WORK_DIR", "CollectResult", "collect", "default_dataset_id"]
+__all__ = ["WORK_DIR", "CollectResult", "CollectSettingsError", "collect", "default_dataset_id"]
 
 #: hidden folder under the output root that holds unfinished runs
 WORK_DIR = ".dsg-collect"
@@ -62,9 +62,73 @@ def default_dataset_id(env_id: str, policy: str) -> str:
     return f"{_slug(env)}/{_slug(pol).lower()}-v0"
 
 
+class CollectSettingsError(CollectError):
+    """Settings that cannot run (bad env kwargs, unknown policy, an existing output): nothing was written."""
+
+
+def _check_env_and_policy(env_id: str, env_kwargs: dict, max_episode_steps, policy) -> None:
+    """Build one env and the policy from the settings, so that a bad setting fails before any run state exists."""
+    from .policies import PolicyError, policy_factory
+    from .rollout import make_env
+
+    try:
+        env = make_env(env_id, env_kwargs, max_episode_steps)
+    except Exception as e:  # any failure of the env's constructor is the settings' fault
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise CollectSettingsError(
+            f"cannot make {env_id} with env kwargs {json.dumps(env_kwargs)}: {msg}"
+        ) from e
+    try:
+        policy_factory(policy, env)
+    except PolicyError as e:
+        raise CollectSettingsError(str(e)) from e
+    finally:
+        env.close()
+
+
+class _RunLock:
+    """An exclusive lock on one dataset's run (``filelock``; ``OUT/.dsg-collect-<dataset>.lock``), held for the
+    whole run; a second run is refused with the holder's process, host and start time (written beside the lock)."""
+
+    def __init__(self, path: Path):
+        self.path, self.info = Path(path), Path(f"{path}.json")
+
+    def __enter__(self):
+        import os
+        import socket
+
+        from filelock import FileLock, Timeout
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.lock = FileLock(str(self.path))
+        try:
+            self.lock.acquire(timeout=0)
+        except Timeout:
+            try:
+                h = json.loads(self.info.read_text())
+                who = f"process {h['pid']} on {h['host']} since {h['started']}"
+            except (OSError, ValueError, KeyError):
+                who = "another process"
+            raise CollectSettingsError(
+                f"{self.path.parent} is in use by another dsg-collect run of this dataset ({who}); wait "
+                "for it to finish, or stop it first"
+            ) from None
+        holder = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+        }
+        atomic_write_bytes(self.info, json.dumps(holder).encode())
+        return self
+
+    def __exit__(self, *exc):
+        self.info.unlink(missing_ok=True)
+        self.lock.release()  # the empty lock file stays: removing it could let two later runs lock two files
+
+
 def _positive(name: str, v) -> int:
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-        raise CollectError(f"{name} must be a positive integer, got {v!r}")
+        raise CollectSettingsError(f"{name} must be a positive integer, got {v!r}")
     return int(v)
 
 
@@ -76,7 +140,7 @@ class _Progress:
         if enabled:
             from tqdm.auto import tqdm
 
-            self.bar = tqdm(total=total, initial=done, unit="ep", desc="collect", dynamic_ncols=True)
+            self.bar = tqdm(total=total, initial=done, unit="episode", desc="collect", dynamic_ncols=True)
 
     def episode(self, rec: EpisodeRecord) -> None:
         self.set_done(self.total_done + 1, self.succ + int(rec.success))
@@ -100,7 +164,7 @@ class _Progress:
         self.shown = now
         rate = self.transitions / max(now - self.t0, 1e-9)
         sr = self.succ / self.total_done if self.total_done else float("nan")
-        self.bar.set_postfix_str(f"{rate:.0f} transitions/s, success {sr:.0%}", refresh=True)
+        self.bar.set_postfix_str(f"rollout {rate:.0f} env steps/s, success {sr:.0%}", refresh=True)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -150,21 +214,21 @@ def collect(
     episodes = _positive("episodes", episodes)
     num_envs = _positive("num_envs", num_envs)
     if vectorization not in VECTORIZATIONS:
-        raise CollectError(f"vectorization must be one of {VECTORIZATIONS}, got {vectorization!r}")
+        raise CollectSettingsError(f"vectorization must be one of {VECTORIZATIONS}, got {vectorization!r}")
     shard_episodes = _positive("shard_episodes", shard_episodes)
     if max_episode_steps is not None:
         max_episode_steps = _positive("max_episode_steps", max_episode_steps)
     if image_encoding not in IMAGE_ENCODINGS:
-        raise CollectError(f"image_encoding must be one of {IMAGE_ENCODINGS}, got {image_encoding!r}")
+        raise CollectSettingsError(f"image_encoding must be one of {IMAGE_ENCODINGS}, got {image_encoding!r}")
     if backend not in ("local", "ray"):
-        raise CollectError(f"backend must be 'local' or 'ray', got {backend!r}")
+        raise CollectSettingsError(f"backend must be 'local' or 'ray', got {backend!r}")
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
-        raise CollectError(f"seed must be an integer >= 0, got {seed!r}")
+        raise CollectSettingsError(f"seed must be an integer >= 0, got {seed!r}")
     env_kwargs = dict(env_kwargs or {})
     try:
         env_kwargs = json.loads(json.dumps(env_kwargs))  # JSON-safe (it is recorded and compared on resume)
     except (TypeError, ValueError) as e:
-        raise CollectError(f"env_kwargs must be JSON-serialisable: {e}") from None
+        raise CollectSettingsError(f"env_kwargs must be JSON-serialisable: {e}") from None
     pname = policy_name(policy)
     dataset_id = dataset_id or default_dataset_id(env_id, pname)
     from minari.dataset.minari_dataset import parse_dataset_id
@@ -172,11 +236,27 @@ def collect(
     try:
         parse_dataset_id(dataset_id)
     except ValueError as e:
-        raise CollectError(str(e)) from None
+        raise CollectSettingsError(str(e)) from None
 
+    _check_env_and_policy(env_id, env_kwargs, max_episode_steps, policy)  # before anything is written
     out = Path(out)
     target = out / dataset_id
     work = out / WORK_DIR / dataset_id.replace("/", "__")
+    with _RunLock(out / f".dsg-collect-{dataset_id.replace('/', '__')}.lock"):
+        return _collect_locked(
+            out, target, work, t0, env_id=env_id, env_kwargs=env_kwargs, policy=policy, pname=pname,
+            episodes=episodes, num_envs=num_envs, vectorization=vectorization, seed=seed, dataset_id=dataset_id,
+            max_episode_steps=max_episode_steps, image_encoding=image_encoding, resume=resume, overwrite=overwrite,
+            shard_episodes=shard_episodes, flush_seconds=flush_seconds, backend=backend, ray_workers=ray_workers,
+            ray_address=ray_address, keep_shards=keep_shards, progress=progress, data_format=data_format,
+        )  # fmt: skip
+
+
+def _collect_locked(out, target, work, t0, *, env_id, env_kwargs, policy, pname, episodes, num_envs, vectorization,
+                    seed, dataset_id, max_episode_steps, image_encoding, resume, overwrite, shard_episodes,
+                    flush_seconds, backend, ray_workers, ray_address, keep_shards, progress,
+                    data_format) -> CollectResult:  # fmt: skip
+    """:func:`collect` once the output's lock is held."""
     settings: dict[str, Any] = {
         "format": RUN_FORMAT, "format_version": RUN_VERSION, "env_id": env_id, "env_kwargs": env_kwargs,
         "policy": pname, "seed": None if seed is None else int(seed), "episodes": episodes,
@@ -189,15 +269,23 @@ def collect(
         if resume and (target / "data" / "metadata.json").exists():
             meta = json.loads((target / "data" / "metadata.json").read_text())
             info = meta.get("dsg_collect", {})
-            return CollectResult(target, dataset_id, int(meta.get("total_episodes", 0)),
-                                 int(meta.get("total_steps", 0)), float(info.get("success_rate", math.nan)),
-                                 0, 0, time.monotonic() - t0)  # fmt: skip
-        raise CollectError(f"{target} already exists; pass overwrite=True (--overwrite) to replace it")
+            have = int(meta.get("total_episodes", 0))
+            if have != episodes:
+                raise CollectSettingsError(
+                    f"{target} is a finished dataset of {have} episodes and --resume only continues unfinished "
+                    f"runs; to have {episodes} episodes, run again with --episodes {episodes} --overwrite (the "
+                    f"same seed gives the same first {min(have, episodes)} episodes) or use another --dataset-id"
+                )
+            return CollectResult(target, dataset_id, have, int(meta.get("total_steps", 0)),
+                                 float(info.get("success_rate", math.nan)), 0, 0, time.monotonic() - t0)  # fmt: skip
+        raise CollectSettingsError(
+            f"{target} already exists; pass overwrite=True (--overwrite) to replace it"
+        )
 
     run_file = work / "run.json"
     if run_file.exists():
         if not resume:
-            raise CollectError(
+            raise CollectSettingsError(
                 f"an unfinished run is in {work}; pass resume=True (--resume) to continue it or overwrite=True "
                 "(--overwrite) to start again"
             )
@@ -210,7 +298,10 @@ def collect(
         diff = [k for k in _FIXED if old.get(k) != settings[k]]
         if diff:
             detail = ", ".join(f"{k}: {old.get(k)!r} -> {settings[k]!r}" for k in diff)
-            raise CollectError(f"cannot resume {work}: settings differ ({detail})")
+            raise CollectSettingsError(
+                f"cannot resume {work}: settings differ ({detail}); run with the recorded settings, or "
+                "--overwrite to start again"
+            )
     else:
         if settings["seed"] is None:
             settings["seed"] = int(np.random.SeedSequence().entropy % (2**63))

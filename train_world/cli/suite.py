@@ -11,6 +11,7 @@ from pathlib import Path
 
 from train_world.suite import runner as _lib
 from train_world.suite.runner import METHODS, _scene_list, _write_tables, merge_tables, run_suite
+from train_world.suite.seeds import run_seeds
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -45,7 +46,12 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         help="refinement steps after ours' joint phase (default: the preset's; 0: none, the paper's method)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="capture (dsg-synth) and training seed (default 0)")
+    p.add_argument(
+        "--seeds",
+        help="comma-separated seeds, e.g. 0,1,2: the whole suite once per seed into OUT/seed-<s>/, then per scene "
+        "the mean, spread and worst case over the seeds in OUT/seeds.md and OUT/seeds.json",
+    )
     p.add_argument(
         "--mip",
         action=argparse.BooleanOptionalAction,
@@ -95,20 +101,29 @@ def main(argv: list[str] | None = None) -> int:
         v = getattr(args, name)
         if v is not None:
             synth += [f"--{name.replace('_', '-')}", str(v)]
+    seeds = None
+    if args.seeds is not None:
+        try:
+            seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
+        except ValueError:
+            parser.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
+        if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+            parser.error(f"--seeds must be distinct integers >= 0, got {args.seeds!r}")
+        if args.seed != 0:
+            parser.error("give --seed or --seeds, not both")
+
+    def one(out: Path, seed: int) -> dict:
+        return run_suite(out, _scene_list(args.scenes), methods, preset=args.preset, iterations=args.iterations,
+                         synth_args=synth, seed=seed, pseudo_every=args.pseudo_every,
+                         max_gaussians=args.max_gaussians, mip=args.mip, refine_steps=args.refine_steps)  # fmt: skip
+
     try:
-        r = run_suite(
-            args.out,
-            _scene_list(args.scenes),
-            methods,
-            preset=args.preset,
-            iterations=args.iterations,
-            synth_args=synth,
-            seed=args.seed,
-            pseudo_every=args.pseudo_every,
-            max_gaussians=args.max_gaussians,
-            mip=args.mip,
-            refine_steps=args.refine_steps,
-        )
+        if seeds is not None:
+            summary = run_seeds(args.out, seeds, one, {m: METHODS[m][0] for m in methods})
+            print(json.dumps({"out": str(args.out), "over_scene_seeds": {
+                m: {k: v["mean"] for k, v in r["all"].items()} for m, r in summary["methods"].items()}}))  # fmt: skip
+            return 0
+        r = one(args.out, args.seed)
     except (RuntimeError, ValueError) as e:
         print(f"dsg-suite: error: {e}", file=sys.stderr)
         return 2

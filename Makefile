@@ -11,10 +11,10 @@ PIP := $(PY) -m pip install -q
 BASE := $(VENV)/.dsg-base
 TEST := $(VENV)/.dsg-test
 BENCH := $(VENV)/.dsg-bench
-# the extras the tests import: test (pytest, hypothesis, ruff), rl (tests/test_env.py), ray
-# (tests/test_collect_ray.py), capture (tests/test_photo_capture.py), bench (tests/test_pareto.py's plots);
-# tests of an absent extra skip with a reason
-TEST_EXTRAS := test,rl,ray,capture,bench
+# the extras the tests import: test (pytest, hypothesis, ruff), rl (tests/test_env.py, tests/test_goal_env.py),
+# ray (tests/test_collect_ray.py), capture (tests/test_photo_capture.py), bench (tests/test_pareto.py's plots),
+# viewer (tests/test_viewer.py), video (tests/test_video.py); tests of an absent extra skip with a reason
+TEST_EXTRAS := test,rl,ray,capture,bench,viewer,video
 export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 

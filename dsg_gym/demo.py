@@ -1,7 +1,9 @@
 """The demo (``dsg-demo``, :mod:`dsg_gym.cli.demo`): a strip of frames written as a PNG.
 
 :func:`run_env_demo` runs the scripted expert policy in ``DSGWorld-v0`` on the bundled world from a seeded
-reset to its goal and writes a strip of RGB observations (top) and object masks (bottom);
+reset to its goal and writes a strip of RGB observations (top) and object masks (bottom), and beside it the
+whole episode as an animated GIF (``render()`` frames with the goal drawn as a ghost; an MP4 too when the
+``video`` extra is installed);
 :func:`run_procedural_demo` renders a small procedural splat scene (a checkered table and three objects seen
 from an orbit of cameras, RGB plus one-hot object ids in one ``rasterize`` pass) without any world file.
 Both print what they did and return the PNG's path.
@@ -117,27 +119,38 @@ def _save_png(image: np.ndarray, out: str | os.PathLike) -> Path:
     return path
 
 
-def run_env_demo(out: str | os.PathLike, size: int, seed: int, frames: int = 6) -> Path:
+def run_env_demo(out: str | os.PathLike, size: int, seed: int, frames: int = 6, video: bool = True) -> Path:
     """Expert episode on the bundled world (``size x size`` observations, reset seed ``seed``); a strip of
-    ``frames`` RGB and mask frames written to ``out``. Prints the steps/s and whether the goal was reached."""
+    ``frames`` RGB and mask frames written to ``out``. With ``video``, the episode's ``render()`` frames (goal
+    ghost drawn, :mod:`dsg_gym.envs.goal_overlay`) also go to ``out`` with the suffix ``.gif``, and ``.mp4``
+    when the ``video`` extra is installed. Prints the steps/s, whether the goal was reached and the paths."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     import gymnasium as gym
 
     import dsg_gym  # noqa: F401  (registers DSGWorld-v0)
     from dsg_gym.collect.policies import ExpertPolicy
 
-    env = gym.make("DSGWorld-v0", width=size, height=size, obs=("rgb", "mask", "poses"))
+    env = gym.make(
+        "DSGWorld-v0", width=size, height=size, obs=("rgb", "mask", "poses"),
+        render_mode="rgb_array" if video else None, render_width=size, render_height=size, render_goal=video,
+    )  # fmt: skip
     obs, info = env.reset(seed=seed)
     policy = ExpertPolicy(env)
     shots, steps, done, success = [obs], 0, False, False
-    t0 = time.perf_counter()
+    clip = [env.render()] if video else []
+    elapsed = 0.0
     while not done:
+        t0 = time.perf_counter()
         obs, reward, terminated, truncated, info = env.step(policy(obs))
+        elapsed += time.perf_counter() - t0
         steps += 1
         done = terminated or truncated
         success = bool(info.get("success", False))
         shots.append(obs)
-    rate = steps / (time.perf_counter() - t0)
+        if video:
+            clip.append(env.render())
+    rate = steps / max(elapsed, 1e-9)
+    fps = float(env.metadata.get("render_fps", 10))
     env.close()
     pick = np.unique(np.linspace(0, len(shots) - 1, frames).round().astype(int))
     k = int(max(int(o["mask"].max()) for o in shots)) + 1
@@ -150,7 +163,20 @@ def run_env_demo(out: str | os.PathLike, size: int, seed: int, frames: int = 6) 
         f"({size}x{size}, rgb+mask), goal {'reached' if success else 'not reached'}"
     )
     print(f"wrote {path.resolve()}")
+    if video:
+        _write_clip(clip, path, fps)
     return path
+
+
+def _write_clip(clip: list[np.ndarray], png: Path, fps: float) -> None:
+    """The episode's frames beside ``png``: a GIF, and an MP4 when the ``video`` extra is installed."""
+    from dsg_gym.video import VIDEO_EXTRA_HINT, mp4_available, write_gif, write_mp4
+
+    print(f"wrote {write_gif(clip, png.with_suffix('.gif'), fps).resolve()} ({len(clip)} frames)")
+    if mp4_available():
+        print(f"wrote {write_mp4(clip, png.with_suffix('.mp4'), fps).resolve()}")
+    else:
+        print(f"no MP4 ({VIDEO_EXTRA_HINT})")
 
 
 def run_procedural_demo(out: str | os.PathLike, size: int, views: int = 4) -> Path:

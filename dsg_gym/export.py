@@ -21,9 +21,11 @@ Episode files: see :mod:`dsg_gym.envs.recording` (``RecordEpisode``, ``save_epis
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -158,10 +160,43 @@ def export_world_usd(world, out, *, poses=None, episode=None, meters_per_unit: f
     cameras = cameras_from_arrays(c.viewmats, c.Ks, c.width, c.height)
     t = wm.table
     table = [[t.xmin, t.ymin, t.z], [t.xmax, t.ymax, t.z]]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    return export_stage(
-        out, wm.background, objects, cameras, episode=ep, table_bounds=table, meters_per_unit=meters_per_unit
-    )
+    with _made_folder(out.parent):
+        return export_stage(
+            out,
+            wm.background,
+            objects,
+            cameras,
+            episode=ep,
+            table_bounds=table,
+            meters_per_unit=meters_per_unit,
+        )
+
+
+@contextlib.contextmanager
+def _made_folder(folder: Path) -> Iterator[None]:
+    """Create ``folder`` and its missing parents; when that or the block fails, remove those it created (if
+    empty). A folder that cannot be created raises ``OSError`` naming it and the reason, in one line."""
+    made = []
+    p = folder
+    while not p.exists() and p != p.parent:
+        made.append(p)
+        p = p.parent
+    try:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            why = (
+                "a file of that name is in the way"
+                if isinstance(e, FileExistsError)
+                else e.strerror or str(e)
+            )
+            raise OSError(f"cannot create the folder {str(e.filename or folder)!r}: {why}") from None
+        yield
+    except BaseException:
+        for d in made:  # deepest first
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        raise
 
 
 # ----------------------------------------------------------------------------------------- PLY
@@ -175,9 +210,11 @@ def _file_stem(name: str, used: set[str], oid: int) -> str:
 
 def export_world_ply(world, out_dir, *, poses=None) -> list[Path]:
     """Write the world as standard 3DGS PLY files (Inria layout, ``dsg_gym.io.write_ply``) into ``out_dir``:
-    ``background.ply`` and one ``<name>.ply`` per object (names made file-safe; a clash gets ``_<id>``), each
-    object in its own frame, or in the world frame placed at ``poses`` (a state name, array or poses file)
-    when given. Object files carry a ``label`` property = the object id. Returns the paths, background first.
+    ``background.ply`` (unless the background has no Gaussians: a PLY needs at least one) and one ``<name>.ply``
+    per object (names made file-safe; a clash gets ``_<id>``), each object in its own frame, or in the world frame
+    placed at ``poses`` (a state name, array or poses file) when given. Object files carry a ``label`` property =
+    the object id. Returns the paths, background first. When a write fails, the files and folders this call
+    created are removed.
 
     Every array reads back bit for bit except ``scales``: the Inria layout stores float32 log-scales, which
     cannot represent every float32 scale, so a scale may come back a few float32 ulps off (relative error
@@ -189,12 +226,23 @@ def export_world_ply(world, out_dir, *, poses=None) -> list[Path]:
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [write_ply(out / "background.ply", wm.background)]
+    jobs = [("background", wm.background, None)] if wm.background.num else []
     used = {"background"}
     for k, (oid, name, g) in enumerate(zip(wm.object_ids, wm.object_names, wm.objects)):
         if P is not None:
             g = transform_gaussians(g, matrix_to_pose7(P[k]))
-        g = dataclasses.replace(g, labels=np.full(g.num, oid, np.int32))
-        paths.append(write_ply(out / f"{_file_stem(name, used, oid)}.ply", g, labels=True))
+        jobs.append(
+            (_file_stem(name, used, oid), dataclasses.replace(g, labels=np.full(g.num, oid, np.int32)), True)
+        )
+    paths: list[Path] = []
+    with _made_folder(out):
+        new = [not (out / f"{stem}.ply").exists() for stem, _, _ in jobs]
+        try:
+            for stem, g, labels in jobs:
+                paths.append(write_ply(out / f"{stem}.ply", g, labels=labels))
+        except BaseException:
+            for p, created in zip(paths, new):
+                if created:
+                    p.unlink(missing_ok=True)
+            raise
     return paths

@@ -7,7 +7,10 @@ object's Gaussians can reach a few millimetres into the table it stood on (conta
 that lie below the table top in a captured state where the object rests on the table (its lowest point within
 ``rest_tolerance`` of the top) are lifted onto the top, so the captured states are contact-free. Poses
 are set by *teleporting* the free joints through ``qpos`` (never mocap bodies, which do not collide with static
-geometry). Everything is deterministic: the same query gives the same answer bit for bit.
+geometry). :meth:`PhysicsProxy.check` also reports the objects outside the world's workspace
+(:class:`~dsg_gym.world_model.Workspace`: the box over the table up to 0.5 m above it). Everything is deterministic:
+the same query gives the same answer bit for bit; every query sets the whole simulation state it reads, so one
+proxy serves any number of envs.
 """
 
 from __future__ import annotations
@@ -24,30 +27,38 @@ import numpy as np  # noqa: E402
 from .poses import as_poses7, quat_normalize, quat_to_rotmat  # noqa: E402
 from .world_model import WorldModel  # noqa: E402
 
-__all__ = ["CollisionReport", "PhysicsProxy", "TABLE"]
+__all__ = ["BOUNDS_TOL", "CollisionReport", "PhysicsProxy", "SETTLE_TOLERANCE", "TABLE"]
 
 #: index used for the table (and floor) in :attr:`CollisionReport.penetrating`
 TABLE = -1
+#: how far (metres) a collision hull may reach past the workspace's x/y bounds or top before it is out of bounds
+BOUNDS_TOL = 1e-3
+#: the deepest penetration (metres) a configuration that :meth:`PhysicsProxy.settle` brought to rest may keep
+SETTLE_TOLERANCE = 2e-3
 
 
 @nb.njit(cache=True)
-def _hull_xy_boxes(p7, pts, off, out):
-    """out [K, 4] = (x min, x max, y min, y max) of each object's hull points pts[off[k]:off[k+1]] (object
-    frame) posed by p7 [K, 7] (unit quaternions, wxyz), in the world frame."""
+def _hull_boxes(p7, pts, off, out):
+    """out [K, 6] = (x min, x max, y min, y max, z min, z max) of each object's hull points pts[off[k]:off[k+1]]
+    (object frame) posed by p7 [K, 7] (unit quaternions, wxyz), in the world frame."""
     for k in range(p7.shape[0]):
         w, x, y, z = p7[k, 3], p7[k, 4], p7[k, 5], p7[k, 6]
         r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
         r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-        xlo = ylo = np.inf
-        xhi = yhi = -np.inf
+        r20, r21, r22 = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+        xlo = ylo = zlo = np.inf
+        xhi = yhi = zhi = -np.inf
         for i in range(off[k], off[k + 1]):
             px, py, pz = pts[i, 0], pts[i, 1], pts[i, 2]
             hx = px * r00 + py * r01 + pz * r02
             hy = px * r10 + py * r11 + pz * r12
+            hz = px * r20 + py * r21 + pz * r22
             xlo, xhi = min(xlo, hx), max(xhi, hx)
             ylo, yhi = min(ylo, hy), max(yhi, hy)
+            zlo, zhi = min(zlo, hz), max(zhi, hz)
         out[k, 0], out[k, 1] = xlo + p7[k, 0], xhi + p7[k, 0]
         out[k, 2], out[k, 3] = ylo + p7[k, 1], yhi + p7[k, 1]
+        out[k, 4], out[k, 5] = zlo + p7[k, 2], zhi + p7[k, 2]
 
 
 @dataclass(frozen=True)
@@ -56,7 +67,8 @@ class CollisionReport:
 
     ``penetrating``: sorted pairs ``(i, j)`` of 0-based object indices (``j`` may be :data:`TABLE`) that
     interpenetrate by more than the tolerance; ``depths``: the penetration depth of each pair (metres);
-    ``out_of_bounds``: objects whose hull leaves the table's x/y bounds; ``min_distance``: the smallest
+    ``out_of_bounds``: objects outside the workspace (:class:`~dsg_gym.world_model.Workspace`: the origin outside
+    the box above the table, or the hull past its x/y bounds or top); ``min_distance``: the smallest
     signed distance between two objects (negative = penetration; ``inf`` for a single object, capped at
     the query range otherwise).
     """
@@ -68,7 +80,7 @@ class CollisionReport:
 
     @property
     def ok(self) -> bool:
-        """No penetration and nothing out of bounds."""
+        """No penetration and nothing outside the workspace."""
         return not self.penetrating and not self.out_of_bounds
 
     def objects_in_collision(self) -> tuple[int, ...]:
@@ -178,7 +190,9 @@ class PhysicsProxy:
         self._qidx = np.concatenate([np.arange(a, a + 7) for a in self._qadr])
         self._hull_pts = np.ascontiguousarray(np.concatenate(self.hulls), np.float64)
         self._hull_off = np.concatenate([[0], np.cumsum([len(h) for h in self.hulls])]).astype(np.int64)
-        self._boxes = np.empty((self.num_objects, 4))
+        self._boxes = np.empty((self.num_objects, 6))
+        #: the box the objects stay in (:attr:`WorldModel.workspace`)
+        self.workspace = world.workspace
 
     # ------------------------------------------------------------------ state
     def _set(self, p7: np.ndarray, full: bool = True) -> None:
@@ -216,7 +230,7 @@ class PhysicsProxy:
         poses,
         *,
         tol: float = 1e-3,
-        bounds_tol: float = 1e-3,
+        bounds_tol: float = BOUNDS_TOL,
         distance: bool = True,
         distance_range: float = 0.05,
     ) -> CollisionReport:
@@ -241,16 +255,9 @@ class PhysicsProxy:
                 key = (max(a, b), min(a, b)) if TABLE in (a, b) else (min(a, b), max(a, b))
                 deepest[key] = max(deepest.get(key, 0.0), -float(dist[i]))
         pairs = tuple(sorted(deepest))
-        t = self.world.table
         b = self._boxes
-        _hull_xy_boxes(p7, self._hull_pts, self._hull_off, b)
-        out = (
-            (b[:, 0] < t.xmin - bounds_tol)
-            | (b[:, 1] > t.xmax + bounds_tol)
-            | (b[:, 2] < t.ymin - bounds_tol)
-            | (b[:, 3] > t.ymax + bounds_tol)
-        )
-        oob = np.flatnonzero(out).tolist()
+        _hull_boxes(p7, self._hull_pts, self._hull_off, b)
+        oob = np.flatnonzero(self.workspace.outside(p7[:, :3], b[:, 0::2], b[:, 1::2], bounds_tol)).tolist()
         dmin = np.inf if distance else np.nan
         for i in range(self.num_objects if distance else 0):
             for j in range(i + 1, self.num_objects):
@@ -259,6 +266,18 @@ class PhysicsProxy:
                 )
                 dmin = min(dmin, float(dist))
         return CollisionReport(pairs, tuple(deepest[p] for p in pairs), tuple(oob), dmin)
+
+    def workspace_problems(self, poses, *, bounds_tol: float = BOUNDS_TOL) -> dict[int, str]:
+        """``{k: what takes object k out of the workspace}`` for the objects that :meth:`check` reports in
+        ``out_of_bounds`` (the same rule and tolerance); empty when all are inside."""
+        p7 = as_poses7(poses, self.num_objects, "poses")
+        b = np.empty((self.num_objects, 6))
+        _hull_boxes(p7, self._hull_pts, self._hull_off, b)
+        ws = self.workspace
+        out = {}
+        for k in np.flatnonzero(ws.outside(p7[:, :3], b[:, 0::2], b[:, 1::2], bounds_tol)):
+            out[int(k)] = ws.problem(p7[k, :3], b[k, 0::2], b[k, 1::2], bounds_tol)
+        return out
 
     def settle(
         self,

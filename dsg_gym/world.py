@@ -21,7 +21,9 @@ log_scales`` (the exact raw values). The JSON document lists the objects ``[{id,
 camera sizes, units, ``metadata`` (training config, source, and the renderer options the world was trained
 with: ``rasterize_mode`` "classic" or "antialiased" and ``eps2d``, see :func:`dsg_gym.splat.rasterize` and
 :attr:`World.splat_options`; absent: "classic", 0.3) and a SHA-256 of the tensor bytes, so a truncated or
-altered file is refused with :class:`WorldFormatError`, as is an unknown format version.
+altered file is refused with :class:`WorldFormatError`, as is an unknown format version, a header field of the wrong
+type or a tensor whose shape does not fit its bytes or its role (the message names the field or the tensor;
+:mod:`dsg_gym.world_header` checks the header).
 
 Reading: :func:`load_world` / :func:`parse_world_bytes`. Writing: :func:`encode_world` (the same world always
 gives the same bytes) and :func:`write_world` (atomic); :func:`build_world` splits trained Gaussians by class
@@ -45,10 +47,11 @@ from safetensors.numpy import save as st_save
 
 from .cameras import Cameras
 from .gaussians import GaussianSet
-from .io.atomic import atomic_write_bytes
+from .io.atomic import atomic_write_bytes, remove_partial
 from .poses import quat_multiply, quat_normalize, rotmat_to_quat
 from .sh_basis import rotate_sh
 from .splat_options import DEFAULT_EPS2D, check_splat_options
+from .world_header import check_doc, tensor_entry
 
 __all__ = [
     "FORMAT_NAME",
@@ -181,7 +184,6 @@ def transform_gaussians(g: GaussianSet, T: np.ndarray, label: int | None = None)
 
 
 # ----------------------------------------------------------------------------------- reading
-_DTYPES = {"F32": np.float32, "F64": np.float64, "I32": np.int32, "I64": np.int64, "U8": np.uint8}
 
 
 def splat_options(metadata: Mapping[str, Any]) -> dict[str, Any]:
@@ -201,7 +203,8 @@ def _fail(src: str, msg: str) -> WorldFormatError:
 
 
 def parse_world_bytes(data: bytes, src: str = "<bytes>") -> World:
-    """Decode a world file's bytes (see the module docstring); :class:`WorldFormatError` on any problem."""
+    """Decode a world file's bytes (see the module docstring); :class:`WorldFormatError` naming the file and the
+    header field or tensor on any problem."""
     if len(data) < 8:
         raise _fail(src, f"truncated world file ({len(data)} bytes)")
     (hlen,) = struct.unpack("<Q", data[:8])
@@ -210,23 +213,29 @@ def parse_world_bytes(data: bytes, src: str = "<bytes>") -> World:
     try:
         header = json.loads(data[8 : 8 + hlen].decode("utf-8"))
         meta = header.pop("__metadata__")
-    except (ValueError, KeyError, AttributeError, UnicodeDecodeError) as e:
-        raise _fail(src, f"not a world file (unreadable header: {e})") from e
+    except (ValueError, KeyError, AttributeError, TypeError, RecursionError) as e:
+        raise _fail(src, f"not a world file (unreadable header: {type(e).__name__}: {e})") from None
     try:
         doc = json.loads(meta[META_KEY])
-    except (KeyError, TypeError, ValueError) as e:
-        raise _fail(src, f"not a world file (no {META_KEY!r} metadata: {e})") from e
+    except (KeyError, TypeError, ValueError, RecursionError) as e:
+        raise _fail(
+            src, f"not a world file (no readable {META_KEY!r} metadata: {type(e).__name__}: {e})"
+        ) from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
         raise _fail(
             src, f"not a world file (format {doc.get('format') if isinstance(doc, dict) else None!r})"
         )
     version = doc.get("format_version")
-    if version != FORMAT_VERSION:
+    if type(version) is not int or version != FORMAT_VERSION:
         raise _fail(
             src, f"unknown world format version {version!r} (this dsg_gym reads version {FORMAT_VERSION})"
         )
     body = memoryview(data)[8 + hlen :]
-    end = max((int(v["data_offsets"][1]) for v in header.values()), default=0)
+    try:
+        table = {name: tensor_entry(name, info) for name, info in header.items()}
+    except ValueError as e:
+        raise _fail(src, str(e)) from None
+    end = max((b for _, _, _, b in table.values()), default=0)
     if len(body) != end:
         raise _fail(
             src, f"truncated or padded world file: tensor data is {len(body)} bytes, header needs {end}"
@@ -234,51 +243,67 @@ def parse_world_bytes(data: bytes, src: str = "<bytes>") -> World:
     if hashlib.sha256(body).hexdigest() != doc.get("sha256"):
         raise _fail(src, "checksum mismatch: the world file is corrupt")
     arrays: dict[str, np.ndarray] = {}
-    for name, info in header.items():
-        if info.get("dtype") not in _DTYPES:
-            raise _fail(src, f"tensor {name!r} has unsupported dtype {info.get('dtype')!r}")
-        a, b = (int(x) for x in info["data_offsets"])
-        arr = np.frombuffer(body[a:b], dtype=np.dtype(_DTYPES[info["dtype"]]).newbyteorder("<"))
-        arrays[name] = arr.reshape(info["shape"]).astype(_DTYPES[info["dtype"]], copy=True)
+    for name, (dtype, shape, a, b) in table.items():
+        arr = np.frombuffer(body[a:b], dtype=np.dtype(dtype).newbyteorder("<"))
+        arrays[name] = arr.reshape(shape).astype(dtype, copy=True)
     try:
-        return _build(arrays, doc, version)
-    except KeyError as e:
-        raise _fail(src, f"missing tensor {e}") from e
+        return _build(arrays, check_doc(doc), version)
     except ValueError as e:
-        raise _fail(src, f"invalid content ({e})") from e
+        raise _fail(src, str(e)) from None
 
 
 def _gaussian_set(arrays: dict[str, np.ndarray], prefix: str) -> GaussianSet:
+    missing = [f for f in GAUSSIAN_FIELDS if f"{prefix}/{f}" not in arrays]
+    if missing:
+        raise ValueError(f"missing tensor {prefix}/{missing[0]!s}")
     kw = {f: arrays[f"{prefix}/{f}"] for f in GAUSSIAN_FIELDS}
     for f in OPTIONAL_FIELDS:
         if f"{prefix}/{f}" in arrays:
             kw[f] = arrays[f"{prefix}/{f}"]
-    return GaussianSet(**kw)
+    try:
+        return GaussianSet(**kw)
+    except ValueError as e:
+        raise ValueError(f"tensors {prefix}/*: {e}") from None
+
+
+def _tensor(arrays: dict[str, np.ndarray], name: str) -> np.ndarray:
+    if name not in arrays:
+        raise ValueError(f"missing tensor {name}")
+    return arrays[name]
 
 
 def _build(arrays: dict[str, np.ndarray], doc: dict, version: int) -> World:
     objects = {}
     for o in doc["objects"]:
-        objects[int(o["id"])] = WorldObject(
-            str(o["name"]), _gaussian_set(arrays, f"gaussians/object_{o['id']}")
+        objects[o["id"]] = WorldObject(o["name"], _gaussian_set(arrays, f"gaussians/object_{o['id']}"))
+    poses = {s: _tensor(arrays, f"poses/{s}") for s in doc["states"]}
+    cameras = {}
+    for s, c in doc["cameras"].items():
+        vm, ks = _tensor(arrays, f"cameras/{s}/viewmats"), _tensor(arrays, f"cameras/{s}/Ks")
+        try:
+            cameras[s] = Cameras(vm, ks, c["width"], c["height"])
+        except ValueError as e:
+            raise ValueError(f"tensors cameras/{s}/*: {e}") from None
+    meta = doc.get("metadata", {})
+    splat_options(meta)  # validates
+    weight, bias = _tensor(arrays, "classifier/weight"), _tensor(arrays, "classifier/bias")
+    k = len(objects)
+    for s, P in poses.items():
+        if P.shape != (k, 4, 4):
+            raise ValueError(f"tensor poses/{s}: shape {P.shape}, expected ({k}, 4, 4) for {k} objects")
+    if weight.ndim != 2 or bias.shape != (weight.shape[0],):
+        raise ValueError(
+            f"tensors classifier/*: weight {weight.shape} must be [C, F] and bias {bias.shape} [C]"
         )
-    poses = {s: arrays[f"poses/{s}"] for s in doc["states"]}
-    cameras = {
-        s: Cameras(
-            arrays[f"cameras/{s}/viewmats"], arrays[f"cameras/{s}/Ks"], int(c["width"]), int(c["height"])
-        )
-        for s, c in doc["cameras"].items()
-    }
-    splat_options(doc.get("metadata", {}))  # validates
     return World(
         background=_gaussian_set(arrays, "gaussians/background"),
         objects=MappingProxyType(objects),
         poses=MappingProxyType(poses),
         cameras=MappingProxyType(cameras),
-        classifier_weight=arrays["classifier/weight"],
-        classifier_bias=arrays["classifier/bias"],
-        metadata=MappingProxyType(doc.get("metadata", {})),
-        units=str(doc.get("units", "unknown")),
+        classifier_weight=weight,
+        classifier_bias=bias,
+        metadata=MappingProxyType(meta),
+        units=doc.get("units", "unknown"),
         format_version=version,
     )
 
@@ -355,8 +380,11 @@ def encode_world(world: World) -> bytes:
 
 
 def write_world(path: str | Path, world: World) -> Path:
-    """Encode ``world`` and write it atomically (:mod:`dsg_gym.io.atomic`) to ``path``; returns the path."""
-    return atomic_write_bytes(path, encode_world(world))
+    """Encode ``world`` and write it atomically (:mod:`dsg_gym.io.atomic`) to ``path`` (the temporaries of killed
+    writes to ``path`` are deleted first); returns the path."""
+    data = encode_world(world)
+    remove_partial(Path(path).parent, Path(path).name, stale_only=True)
+    return atomic_write_bytes(path, data)
 
 
 def build_world(

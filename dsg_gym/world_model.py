@@ -23,7 +23,10 @@ from .poses import as_poses7, pose7_to_matrix
 from .world import load_world, splat_options
 from .world import transform_gaussians as _transform_matrix
 
-__all__ = ["TableBounds", "WorldModel", "WorldModelError"]
+__all__ = ["TableBounds", "WORKSPACE_HEIGHT", "Workspace", "WorldModel", "WorldModelError"]
+
+#: height of the workspace above the table top, metres (:class:`Workspace`)
+WORKSPACE_HEIGHT = 0.5
 
 
 class WorldModelError(ValueError):
@@ -52,6 +55,53 @@ class TableBounds:
     @property
     def size(self) -> tuple[float, float]:
         return (self.xmax - self.xmin, self.ymax - self.ymin)
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """The box the objects stay in: x and y within the table's bounds, z from the table top up to
+    :data:`WORKSPACE_HEIGHT` above it (``lo``, ``hi``: its corners).
+
+    An object is inside when its origin (the position of its pose) lies in the box and its collision hull stays
+    within the box's x/y range and below its top, each by at most ``tol``. A hull that reaches below the table
+    top touches or penetrates the table: that is a collision, not a workspace violation."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    @classmethod
+    def above(cls, table: TableBounds, height: float = WORKSPACE_HEIGHT) -> Workspace:
+        """The workspace of ``table``: its x/y bounds, from its top up to ``height`` metres above it."""
+        return cls((table.xmin, table.ymin, table.z), (table.xmax, table.ymax, table.z + float(height)))
+
+    def outside(
+        self, origins: np.ndarray, hull_lo: np.ndarray, hull_hi: np.ndarray, tol: float
+    ) -> np.ndarray:
+        """``[K]`` bool: objects outside the box, from their origins and hulls' lower / upper corners ``[K,3]``."""
+        lo, hi = np.array(self.lo), np.array(self.hi)
+        return (
+            np.any(origins < lo, axis=1)
+            | np.any(origins > hi, axis=1)
+            | np.any(hull_lo[:, :2] < lo[:2] - tol, axis=1)
+            | np.any(hull_hi[:, :2] > hi[:2] + tol, axis=1)
+            | (hull_hi[:, 2] > hi[2] + tol)
+        )
+
+    def problem(self, origin: np.ndarray, hull_lo: np.ndarray, hull_hi: np.ndarray, tol: float) -> str | None:
+        """What takes one object out of the box (``None`` when it is inside), as :meth:`outside` decides."""
+        for i, axis in enumerate("xyz"):
+            what = (
+                "the table's bounds"
+                if i < 2
+                else f"the table top to {self.hi[2] - self.lo[2]:.4g} m above it"
+            )
+            bound = f"the workspace's {axis} range [{self.lo[i]:.4g}, {self.hi[i]:.4g}] ({what})"
+            if not self.lo[i] <= origin[i] <= self.hi[i]:
+                return f"its position {axis} = {origin[i]:.6g} is outside {bound}"
+            if (i < 2 and hull_lo[i] < self.lo[i] - tol) or hull_hi[i] > self.hi[i] + tol:
+                reach = hull_lo[i] if hull_lo[i] < self.lo[i] - tol and i < 2 else hull_hi[i]
+                return f"its collision hull reaches {axis} = {reach:.4g}, outside {bound}"
+        return None
 
 
 @dataclass(frozen=True, eq=False)
@@ -120,6 +170,12 @@ class WorldModel:
     def splat_options(self) -> dict[str, Any]:
         """Renderer keyword arguments the world was trained with (:attr:`dsg_gym.world.World.splat_options`)."""
         return splat_options(self.metadata)
+
+    @property
+    def workspace(self) -> Workspace:
+        """The box the objects stay in (:class:`Workspace`: the table's x/y bounds, from its top up to
+        :data:`WORKSPACE_HEIGHT` above it)."""
+        return Workspace.above(self.table)
 
     @property
     def num_gaussians(self) -> int:
@@ -249,13 +305,27 @@ def _table_from_metadata(meta: Mapping[str, Any]) -> TableBounds | None:
     t = meta.get("table")
     if not isinstance(t, Mapping) or "bounds" not in t:
         return None
-    b = np.asarray(t["bounds"], dtype=np.float64)
-    if b.shape != (2, 3):
+    try:
+        b = np.asarray(t["bounds"], dtype=np.float64)
+    except (TypeError, ValueError, OverflowError, RecursionError):
+        b = None
+    if b is None or b.shape != (2, 3):
         raise WorldModelError(
-            f"metadata table.bounds: expected [[x0, y0, z], [x1, y1, z]], got shape {b.shape}"
+            f"metadata table.bounds: expected [[x0, y0, z], [x1, y1, z]] numbers, got {_short(t['bounds'])}"
         )
-    z = float(t.get("top_z", b[0, 2]))
+    top = t.get("top_z", b[0, 2])
+    if isinstance(top, bool) or not isinstance(top, (int, float, np.floating)):
+        raise WorldModelError(f"metadata table.top_z: expected a number, got {_short(top)}")
+    try:
+        z = float(top)
+    except OverflowError:
+        raise WorldModelError(f"metadata table.top_z: expected a finite number, got {_short(top)}") from None
     return TableBounds(float(b[0, 0]), float(b[1, 0]), float(b[0, 1]), float(b[1, 1]), z)
+
+
+def _short(v: Any) -> str:
+    text = repr(v) if isinstance(v, (int, float, str, type(None))) else type(v).__name__
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _world_states(world: Any) -> dict[str, np.ndarray]:

@@ -141,10 +141,14 @@ def test_action_modes(boxes):
     env.reset(seed=0)
     a = np.zeros(14, np.float32)
     a[:7] = (0.0, 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
-    a[7:] = (1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    a[7:] = (0.5, 0.5, 1.0, 0.0, 0.0, 0.0, 1.0)
     p = env.step(a)[0]["poses"]
     np.testing.assert_allclose(p[0], [0.0, 0.0, 0.0, 1, 0, 0, 0], atol=1e-12)
-    np.testing.assert_allclose(p[1], [0.3, 0.2, 0.3, 0, 0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(p[1], [0.15, 0.1, 0.3, 0, 0, 0, 1], atol=1e-12)
+    a[7:] = (1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0)  # the table's corner: half the box beyond its edges
+    obs, _, _, _, info = env.step(a)
+    assert info["rejected"].tolist() == [False, True] and info["collision"]
+    np.testing.assert_array_equal(obs["poses"][1], p[1])
     with pytest.raises(ValueError, match="quaternion"):
         env.step(np.zeros(14, np.float32))
     env = DSGWorldEnv(world=boxes, action_mode="se3", width=32, height=32, collision="ignore")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import gymnasium as gym
@@ -239,3 +240,68 @@ def test_ply_file_names_are_safe(tmp_path, wm):
     odd = dataclasses.replace(wm, object_names=("a/b c", "background"))
     names = [p.name for p in export_world_ply(odd, tmp_path)]
     assert names == ["background.ply", "a_b_c.ply", "background_2.ply"]
+
+
+# ------------------------------------------------------------------------------------------- failures
+def test_cli_unwritable_place_is_one_error_line(capsys):
+    if not Path("/proc/self").is_dir():
+        pytest.skip("needs /proc, a folder no one can create files in")
+    code, out, err = run_cli([WORLD, "--out", "/proc/dsg.usda"], capsys)
+    assert code == 2 and not out
+    assert err.count("\n") == 1 and err.startswith(
+        "dsg-export: error: export_stage: cannot write '/proc/dsg.usda'"
+    )
+    assert "Traceback" not in err and "pxr" not in err
+
+
+def test_a_failed_export_leaves_no_new_folders(tmp_path, capsys, monkeypatch):
+    import dsg_gym.io
+    import dsg_gym.usd
+
+    def unwritable(path, *args, **kwargs):
+        raise OSError(f"export_stage: cannot write {str(path)!r}: No space left on device")
+
+    monkeypatch.setattr(dsg_gym.usd, "export_stage", unwritable)
+    code, _, err = run_cli([WORLD, "--out", tmp_path / "new" / "deeper" / "w.usda"], capsys)
+    assert code == 2 and err.count("\n") == 1 and "No space left on device" in err
+    assert os.listdir(tmp_path) == []
+
+    real, calls = dsg_gym.io.write_ply, []
+
+    def second_fails(path, g, **kw):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError(f"{path}: No space left on device")
+        return real(path, g, **kw)
+
+    monkeypatch.setattr(dsg_gym.io, "write_ply", second_fails)
+    (tmp_path / "ply").mkdir()
+    (tmp_path / "ply" / "notes.txt").write_text("kept")
+    code, _, err = run_cli([WORLD, "--out", tmp_path / "ply", "--ply"], capsys)
+    assert code == 2 and len(calls) == 2 and os.listdir(tmp_path / "ply") == ["notes.txt"]
+    calls.clear()
+    code, _, err = run_cli([WORLD, "--out", tmp_path / "fresh" / "ply", "--ply"], capsys)
+    assert code == 2 and sorted(os.listdir(tmp_path)) == ["ply"]
+
+
+@pytest.mark.parametrize("ply", [False, True])
+def test_cli_folder_that_cannot_be_created_is_one_error_line(tmp_path, capsys, ply):
+    (tmp_path / "notes.txt").write_text("a file, not a folder")
+    out = tmp_path / "notes.txt" / "deeper" / ("ply" if ply else "w.usda")
+    code, stdout, err = run_cli([WORLD, "--out", out, *(["--ply"] if ply else [])], capsys)
+    assert code == 2 and not stdout and err.count("\n") == 1
+    assert err.startswith("dsg-export: error: cannot create the folder ")
+    assert str(tmp_path / "notes.txt") in err and "Traceback" not in err
+    assert os.listdir(tmp_path) == ["notes.txt"]
+
+
+def test_ply_export_of_a_world_without_background_gaussians(tmp_path, wm):
+    import dataclasses
+
+    from dsg_gym.gaussians import GaussianSet
+
+    bg = GaussianSet.empty(wm.background.sh_degree, wm.background.num_features)
+    bare = dataclasses.replace(wm, background=bg)
+    paths = export_world_ply(bare, tmp_path)
+    assert [p.name for p in paths] == [f"{n}.ply" for n in wm.object_names]
+    assert [read_ply(p).num for p in paths] == [g.num for g in wm.objects]

@@ -103,3 +103,19 @@ def test_hulls_of_resting_objects_are_lifted_out_of_the_table():
     assert (0, TABLE) in r.penetrating and r.depths[r.penetrating.index((0, TABLE))] == pytest.approx(
         0.006, abs=1e-3
     )
+
+
+def test_workspace_bounds_z_as_well_as_x_and_y(proxy):
+    p = matrix_to_pose7(proxy.world.states["state1"])
+    assert proxy.workspace.hi[2] == proxy.world.table.z + 0.5 and not proxy.workspace_problems(p)
+    high = p.copy()
+    high[0, 2] = 0.5 - HALF + 0.005  # origin inside, hull top 5 mm above the workspace
+    r = proxy.check(high)
+    assert r.out_of_bounds == (0,) and not r.penetrating
+    assert "hull reaches z = 0.505" in proxy.workspace_problems(high)[0]
+    sunk = p.copy()
+    sunk[1, 2] = -0.01  # origin below the table top (the hull mostly inside the table)
+    assert proxy.check(sunk).out_of_bounds == (1,)
+    assert proxy.workspace_problems(sunk) == {
+        1: "its position z = -0.01 is outside the workspace's z range [0, 0.5] (the table top to 0.5 m above it)"
+    }

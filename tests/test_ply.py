@@ -303,3 +303,20 @@ def test_real_file(tmp_path):
     # Without the stored encodings the bytes may differ, but the parsed arrays may not.
     stripped = read_ply(write_ply(tmp_path / "stripped.ply", g.without_encodings()))
     assert_same(g, stripped)
+
+
+# --------------------------------------------------------------------------- empty files
+
+
+def test_a_ply_without_vertices_is_a_clear_error(tmp_path):
+    data = write_ply(tmp_path / "a.ply", random_set(np.random.default_rng(0), 3, 1, labels=True)).read_bytes()
+    header = data[: data.index(b"end_header\n") + len(b"end_header\n")]
+    p = tmp_path / "empty.ply"
+    p.write_bytes(header.replace(b"element vertex 3\n", b"element vertex 0\n"))
+    with pytest.raises(
+        PlyFormatError, match=re.escape(str(p)) + r": the PLY has no Gaussians \(element vertex 0\)"
+    ):
+        read_ply(p)
+    with pytest.raises(ValueError, match="nothing to write, the set has no Gaussians"):
+        write_ply(tmp_path / "b.ply", GaussianSet.empty(1))
+    assert sorted(os.listdir(tmp_path)) == ["a.ply", "empty.ply"]

@@ -75,6 +75,6 @@ def test_train_step_benchmark_from_initial_fields_and_from_a_checkpoint(tmp_path
     # a checkpoint needs its capture; a checkpoint from another step count is refused by the trainer
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "x.json"), "--quick", "--checkpoint", str(ckpt)])
-    with pytest.raises(ValueError, match="differ in B/C/P alone"):
+    with pytest.raises(ValueError, match="differ in B/C/P and the motion refinement alone"):
         main(["--out", str(tmp_path / "x.json"), "--quick", "--capture", str(cap), "--checkpoint", str(ckpt)])
     assert not (tmp_path / "x.json").exists()

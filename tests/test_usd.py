@@ -576,3 +576,51 @@ def test_cameras_from_arrays(tmp_path, world):
     np.testing.assert_allclose(got.cameras[1].viewmat, cams[1].viewmat, atol=1e-9)
     with pytest.raises(ValueError, match="bad shapes"):
         cameras_from_arrays(np.eye(4), np.eye(3), 10, 10)
+
+
+def test_an_unwritable_place_is_an_os_error_naming_it(tmp_path, world):
+    background, objects, _ = world
+    if not Path("/proc/self").is_dir():
+        pytest.skip("needs /proc, a folder no one can create files in")
+    with pytest.raises(OSError, match=r"export_stage: cannot write '/proc/w.usda': Unable to create") as err:
+        export_stage("/proc/w.usda", background, objects)
+    assert "\n" not in str(err.value) and ".cpp" not in str(err.value)  # USD's reason, without its sources
+
+
+def test_an_export_removes_what_killed_exports_to_its_path_left(tmp_path, world):
+    import subprocess
+    import sys
+    import textwrap
+
+    background, objects, _ = world
+    target = tmp_path / "w.usda"
+    code = f"""
+        import contextlib, os, signal
+        import numpy as np
+        import dsg_gym.usd.stage as stage
+        from dsg_gym.gaussians import GaussianSet
+        real = stage.atomic_path
+
+        @contextlib.contextmanager
+        def killed_after_writing(path, **kw):
+            with real(path, **kw) as tmp:
+                yield tmp
+                os.kill(os.getpid(), signal.SIGKILL)  # USD wrote the temporary; it is never renamed
+
+        stage.atomic_path = killed_after_writing
+        g = GaussianSet.from_rgb(np.zeros((5, 3)), np.tile([1.0, 0, 0, 0], (5, 1)), np.full((5, 3), 0.01),
+                                 np.full(5, 0.5), np.full((5, 3), 0.5))
+        stage.export_stage({str(target)!r}, g)
+    """
+    res = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True)
+    assert res.returncode != 0, res.stderr
+    left = os.listdir(tmp_path)
+    assert len(left) == 1 and left[0].startswith(".w.usda.tmp-") and (tmp_path / left[0]).stat().st_size > 0
+    pid, host, rest = left[0][len(".w.usda.tmp-") :].split("-", 2)
+    live = f".w.usda.tmp-{os.getppid()}-{host}-{rest}"  # a writer that still runs keeps its temporary
+    elsewhere = f".w.usda.tmp-{pid}-{int(host, 16) ^ 1:08x}-{rest}"  # so does one on another machine
+    for name in (live, elsewhere):
+        (tmp_path / name).write_bytes(b"partial")
+    export_stage(target, background, objects)
+    assert sorted(os.listdir(tmp_path)) == sorted([live, elsewhere, "w.usda"])
+    assert read_stage(target).background.num == background.num

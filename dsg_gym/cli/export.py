@@ -4,6 +4,7 @@ PLY files (see ``dsg-export --help``; the work is done by :mod:`dsg_gym.export`)
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 __all__ = ["main"]
@@ -43,20 +44,22 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     ap = _parser()
     args = ap.parse_args(argv)
+    if args.ply and args.episode is not None:
+        ap.error("--episode needs a USD output (drop --ply)")
+    if args.ply and Path(args.out).suffix in (".usdc", ".usda"):
+        ap.error(f"--ply writes a folder of .ply files; --out {args.out!r} looks like a USD stage")
     from dsg_gym.export import export_world_ply, export_world_usd
 
     try:
         if args.ply:
-            if args.episode is not None:
-                ap.error("--episode needs a USD output (drop --ply)")
-            if Path(args.out).suffix in (".usdc", ".usda"):
-                ap.error(f"--ply writes a folder of .ply files; --out {args.out!r} looks like a USD stage")
             for p in export_world_ply(args.world, args.out, poses=args.poses):
                 print(p)
         else:
             print(export_world_usd(args.world, args.out, poses=args.poses, episode=args.episode))
-    except (ValueError, OSError) as e:
-        ap.error(str(e))
+    except (ValueError, OSError) as e:  # bad input or an unwritable place: one line, nothing left behind
+        msg = "; ".join(line.strip() for line in str(e).splitlines() if line.strip())
+        print(f"dsg-export: error: {msg}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -78,7 +78,9 @@ def collect_ray(
 
     Connects to a running Ray instance (``address``, or one already initialised in this process) or starts
     a local one with ``workers`` CPUs (default: all). ``workers`` tasks (default: the cluster's CPUs /
-    ``num_envs``) each run ``num_envs`` envs. Returns ``{"episodes", "transitions"}`` collected.
+    ``num_envs``) each run ``num_envs`` envs. Returns ``{"episodes", "transitions", "rollout_seconds",
+    "write_seconds"}`` as :func:`~dsg_gym.collect.episodes.collect_episodes` does, ``rollout_seconds`` being
+    the longest task's (the tasks run side by side).
     """
     ray = import_ray()
     started = False
@@ -97,7 +99,12 @@ def collect_ray(
             for block in _blocks(todo, n)
         ]
         store = ShardStore(shard_root)
-        stats = {"episodes": 0, "transitions": 0}
+        stats: dict[str, float] = {
+            "episodes": 0,
+            "transitions": 0,
+            "rollout_seconds": 0.0,
+            "write_seconds": 0.0,
+        }
         pending = list(refs)
         try:
             while pending:
@@ -110,6 +117,9 @@ def collect_ray(
                         raise CollectError(f"a Ray worker failed: {type(cause).__name__}: {cause}") from e
                     stats["episodes"] += got["episodes"]
                     stats["transitions"] += got["transitions"]
+                    stats["write_seconds"] += got["write_seconds"]
+                    # the tasks roll out side by side: the run's rollout time is the longest task's
+                    stats["rollout_seconds"] = max(stats["rollout_seconds"], got["rollout_seconds"])
                 if progress is not None:
                     done = store.done()
                     succ = sum(int(s.successes[j]) for s, j in done.values())

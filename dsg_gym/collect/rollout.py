@@ -27,6 +27,7 @@ import numpy as np
 __all__ = [
     "DEFAULT_INFO_KEYS",
     "CollectError",
+    "CollectSettingsError",
     "EpisodeRecord",
     "episode_seed",
     "make_env",
@@ -41,6 +42,11 @@ DEFAULT_INFO_KEYS = ("success", "collision", "rejected", "position_errors", "rot
 class CollectError(RuntimeError):
     """Collection stopped: a bad policy, a bad action, an env failure or an unusable output folder. Episodes
     finished before the error are kept (see :func:`dsg_gym.collect.collect`)."""
+
+
+class CollectSettingsError(CollectError):
+    """A run refused before it starts (bad settings, an existing output, a run in progress on the same
+    dataset): nothing on disk was changed."""
 
 
 def episode_seed(base_seed: int, index: int) -> int:

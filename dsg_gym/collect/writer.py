@@ -17,7 +17,9 @@ OUT/.dsg-collect/<...>/shards/shard-<first>-<uid>/         finished episodes, ea
 ```
 
 Every folder is written as a hidden temporary sibling and renamed into place, so a crash leaves either a
-complete shard / dataset or none (temporaries are removed on the next run).
+complete shard / dataset or none (temporaries are removed on the next run). Extending a finished dataset
+makes it the run's first shard (:meth:`ShardStore.adopt`: hard links, no copy), so the dataset can be
+replaced at the end while its episodes stay safe in the shard.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
+import os
+import shutil
 import uuid
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -168,6 +172,39 @@ class ShardStore:
             )  # fmt: skip
         return target
 
+    def adopt(self, data_path: Path, *, seeds: Sequence[int], steps: Sequence[int],
+              successes: Sequence[bool]) -> Path:  # fmt: skip
+        """Make the Minari data folder ``data_path`` of a finished dataset (episodes ``0 .. n-1``, with these
+        ``seeds``, ``steps`` and ``successes``) a shard of this run, atomically and without copying: its data
+        files are hard-linked (copied where the file system cannot link) and its ``metadata.json`` gets the
+        shard's records. The dataset folder may then be replaced (not modified) without touching the shard."""
+        data_path = Path(data_path)
+        n = len(seeds)
+        if not n or len(steps) != n or len(successes) != n:
+            raise CollectError(f"cannot adopt {data_path}: per-episode records of different lengths")
+        meta = json.loads((data_path / "metadata.json").read_text())
+        meta["dsg_collect_shard"] = {
+            "episode_indices": list(range(n)),
+            "episode_seeds": [int(v) for v in seeds],
+            "episode_steps": [int(v) for v in steps],
+            "episode_success": [bool(v) for v in successes],
+        }
+        self.root.mkdir(parents=True, exist_ok=True)
+        target = self.root / f"shard-{0:08d}-{uuid.uuid4().hex[:8]}"
+        with atomic_dir(target) as tmp:
+            for src in sorted(data_path.rglob("*")):
+                dst = tmp / src.relative_to(data_path)
+                if src.is_dir():
+                    dst.mkdir(parents=True, exist_ok=True)
+                elif src != data_path / "metadata.json":
+                    dst.parent.mkdir(parents=True, exist_ok=True)
+                    try:
+                        os.link(src, dst)
+                    except OSError:
+                        shutil.copy2(src, dst)
+            (tmp / "metadata.json").write_text(json.dumps(meta))
+        return target
+
     def shards(self) -> list[ShardInfo]:
         """The complete shards, sorted by folder name (temporaries of interrupted writes are ignored)."""
         out = []
@@ -208,9 +245,11 @@ def combine_shards(
     jpeg: bool,
     data_format: str = "hdf5",
     metadata: Mapping[str, Any] | None = None,
+    replace: bool = False,
 ) -> Path:
     """Write the episodes ``indices`` (in that order; all must be finished) from the shards as one Minari
-    dataset folder ``target`` (``target/data/...``), atomically. Returns ``target``."""
+    dataset folder ``target`` (``target/data/...``), atomically; ``replace``: an existing ``target`` is
+    replaced once the new folder is complete. Returns ``target``."""
     _, storage_cls = _minari()
     from minari.data_collector.episode_buffer import EpisodeBuffer
 
@@ -239,7 +278,7 @@ def combine_shards(
                 infos=ep.get("infos") or None,
             )  # fmt: skip
 
-    with atomic_dir(Path(target)) as tmp:
+    with atomic_dir(Path(target), replace=replace) as tmp:
         write_storage(
             tmp / "data", buffers(), observation_space=first.observation_space, action_space=first.action_space,
             env_spec=env_spec, dataset_id=dataset_id, jpeg=jpeg, data_format=data_format, metadata=metadata,

@@ -12,9 +12,20 @@ import numpy as np
 from gymnasium import spaces
 
 from ..assets import world_path
-from ..cameras import Cameras, intrinsics_from_fov, look_at
+from ..cameras import Cameras
+from ..physics import SETTLE_TOLERANCE
 from ..poses import as_poses7, axis_angle_to_quat, matrix_to_pose7, quat_multiply, quat_normalize, yaw_to_quat
 from ..world_model import WorldModel
+from .checks import (
+    check_action,
+    check_goal,
+    check_start,
+    positive_int,
+    real_array,
+    resolve_cameras,
+    settle_checked,
+)
+from .goal_overlay import check_render_goal, overlay_goal
 from .tasks import RearrangementTask, TaskParams
 
 __all__ = ["DSGWorldEnv", "DEFAULT_WORLD", "GEOMETRY_WORLD", "load_default_world"]
@@ -30,6 +41,7 @@ OBS_KEYS = ("rgb", "mask", "depth", "poses")
 ACTION_MODES = ("delta", "se3", "absolute")
 COLLISION_MODES = ("reject", "settle", "ignore")
 RESET_OPTIONS = ("start", "goal")
+ABSOLUTE_Z_SPAN = 0.3  # metres above the table top that absolute actions' z spans
 _WORLD_CACHE: dict[str, WorldModel] = {}
 
 
@@ -60,55 +72,6 @@ def _resolve_world(world) -> WorldModel:
     raise ValueError(f"world must be None, a path or a WorldModel, got {type(world).__name__}")
 
 
-def _look_at(spec: Mapping[str, Any], width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(viewmat, K)`` of a look-at camera spec ``{eye, target[, up][, fovy_deg]}`` (checked)."""
-    unknown = set(spec) - {"eye", "target", "up", "fovy_deg"}
-    if unknown or "eye" not in spec or "target" not in spec:
-        raise ValueError(
-            f"look-at camera spec needs 'eye' and 'target' (optional 'up', 'fovy_deg'); got {spec}"
-        )
-    eye = np.asarray(spec["eye"], dtype=np.float64)
-    target = np.asarray(spec["target"], dtype=np.float64)
-    up = np.asarray(spec.get("up", (0.0, 0.0, 1.0)), dtype=np.float64)
-    fovy = float(spec.get("fovy_deg", 50.0))
-    if eye.shape != (3,) or target.shape != (3,) or up.shape != (3,):
-        raise ValueError("look-at camera: eye, target and up must be 3-vectors")
-    if not (np.all(np.isfinite(eye)) and np.all(np.isfinite(target)) and np.all(np.isfinite(up))):
-        raise ValueError("look-at camera: non-finite eye/target/up")
-    if not 0.0 < fovy < 180.0:
-        raise ValueError(f"look-at camera: fovy_deg must lie in (0, 180), got {fovy}")
-    return look_at(eye, target, up), intrinsics_from_fov(fovy, width, height)
-
-
-def _resolve_cameras(cameras, capture: Cameras, width: int, height: int) -> tuple[Cameras, bool]:
-    """``(Cameras, multi)``: ``multi`` is False for a single camera given as an int, a dict or ``None``."""
-    cap = capture.resized(width, height)
-    multi = isinstance(cameras, (list, tuple))
-    items = list(cameras) if multi else [0 if cameras is None else cameras]
-    if not items:
-        raise ValueError("cameras: empty list")
-    vms, ks = [], []
-    for c in items:
-        if isinstance(c, (int, np.integer)) and not isinstance(c, bool):
-            if not 0 <= int(c) < len(cap):
-                raise ValueError(f"cameras: capture camera index {c} out of range [0, {len(cap)})")
-            vms.append(cap.viewmats[int(c)])
-            ks.append(cap.Ks[int(c)])
-        elif isinstance(c, Mapping):
-            vm, k = _look_at(c, width, height)
-            vms.append(vm)
-            ks.append(k)
-        else:
-            raise ValueError(f"cameras: expected a capture camera index or a look-at dict, got {c!r}")
-    return Cameras(np.stack(vms), np.stack(ks), width, height), multi
-
-
-def _positive_int(name: str, v) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or int(v) < 1:
-        raise ValueError(f"{name} must be a positive integer, got {v!r}")
-    return int(v)
-
-
 class DSGWorldEnv(gym.Env):
     """Goal-conditioned rearrangement in a 3D Gaussian world model (``DSGWorld-v0``).
 
@@ -127,13 +90,14 @@ class DSGWorldEnv(gym.Env):
     | ``cameras`` | ``None`` | ``None`` = capture camera 0; an int (capture camera index); a look-at dict ``{"eye", "target", "up"?, "fovy_deg"?}``; or a **list** of these for V views (images get a leading V axis) |
     | ``obs`` | ``("rgb", "mask", "poses")`` | any of ``rgb``, ``mask``, ``depth``, ``poses``; only these are rendered (``goal`` is always included) |
     | ``action_mode`` | ``"delta"`` | ``"delta"``, ``"se3"`` or ``"absolute"`` (see Action space) |
-    | ``collision`` | ``"reject"`` | ``"reject"``: a move that interpenetrates or leaves the table is undone for the objects involved (``info["rejected"]``); ``"settle"``: out-of-table moves are undone, then MuJoCo lets every object fall and come to rest; ``"ignore"``: any move is accepted (collisions are still reported in ``info``) |
+    | ``collision`` | ``"reject"`` | ``"reject"``: a move that interpenetrates or leaves the workspace is undone for the objects involved (``info["rejected"]``); ``"settle"``: moves that leave the workspace are undone, then MuJoCo lets every object fall and come to rest; when they cannot rest inside the workspace without interpenetrating deeper than 2 mm (``physics.SETTLE_TOLERANCE``) the whole move is undone; ``"ignore"``: moves that stay in the workspace are accepted (collisions are still reported in ``info``) |
     | ``max_translation`` | 0.02 | metres per step at action 1 (``delta``, ``se3``) |
     | ``max_rotation`` | 0.2 | radians per step at action 1 (``delta``: yaw, ``se3``: axis-angle norm per component) |
     | ``task`` | ``TaskParams()`` | tolerances and reward weights (:class:`~dsg_gym.envs.tasks.TaskParams` or a dict of its fields) |
     | ``incremental`` | ``True`` | incremental rendering (``False``: full render every step; same images) |
     | ``render_mode`` | ``None`` | ``"rgb_array"``: ``render()`` returns uint8 ``(render_height, render_width * V, 3)`` |
     | ``render_width``, ``render_height`` | 256, 256 | size of ``render()`` images |
+    | ``render_goal`` | ``False`` | ``render()`` frames also show each object at its goal pose as a translucent, outlined ghost (observations never do) |
     | ``background_color`` | ``(0, 0, 0)`` | RGB in [0, 1] behind all Gaussians |
     | ``render_settings`` | ``RenderSettings()`` | renderer speed/accuracy knobs (:class:`~dsg_gym.scene_renderer.RenderSettings` or a dict of its fields: ``alpha_min`` 2/255, ``t_min`` 1e-3, ``sh_degree`` ``None``: the point ``benchmarks/pareto.py`` recommends; ``{"alpha_min": 1/255, "t_min": 1e-4}`` renders exactly like the training renderer) |
     | ``max_episode_steps`` | ``None`` | internal truncation (``gymnasium.make`` adds a ``TimeLimit`` of 200 steps anyway) |
@@ -141,7 +105,8 @@ class DSGWorldEnv(gym.Env):
     ## Action space
 
     ``Box(-1, 1, (K * n,), float32)`` for K objects, ``n`` numbers per object (object k owns entries
-    ``[k*n, (k+1)*n)``). Values are clipped to [-1, 1]; NaN/Inf or a wrong shape raise ``ValueError``.
+    ``[k*n, (k+1)*n)``). Values are clipped to [-1, 1]; NaN/Inf, a wrong shape or a dtype other than bool, int or
+    float (complex, object, string) raise ``ValueError``.
 
     | ``action_mode`` | n | per object | scaling |
     | --- | --- | --- | --- |
@@ -158,19 +123,24 @@ class DSGWorldEnv(gym.Env):
     | ``rgb`` | ``Box(0, 255, (H, W, 3), uint8)`` | splat-rendered colour |
     | ``mask`` | ``Box(0, K, (H, W), uint8)`` | object id per pixel (0 = background, k = object k) |
     | ``depth`` | ``Box(0, inf, (H, W), float32)`` | expected z-depth in metres (0 where nothing is hit) |
-    | ``poses`` | ``Box(-inf, inf, (K, 7), float64)`` | object poses ``x, y, z, qw, qx, qy, qz`` (unit quaternion, ``qw >= 0``) |
-    | ``goal`` | ``Box(-inf, inf, (K, 7), float64)`` | goal poses, same layout |
+    | ``poses`` | ``Box(low, high, (K, 7), float64)`` | object poses ``x, y, z, qw, qx, qy, qz`` (unit quaternion, ``qw >= 0``); x, y, z within the workspace, quaternion parts within [-1, 1] |
+    | ``goal`` | ``Box(low, high, (K, 7), float64)`` | goal poses, same layout and bounds |
 
-    With a list of V cameras the image entries get a leading ``V`` axis.
+    With a list of V cameras the image entries get a leading ``V`` axis. The workspace
+    (:attr:`~dsg_gym.world_model.WorldModel.workspace`) is the box over the table's x/y bounds from its top to 0.5 m
+    above it; no object leaves it in any collision mode (its origin stays in the box, its collision hull within the
+    table's x/y bounds and below the box's top).
 
     ## Episodes
 
     ``reset(seed=..., options=...)`` samples a valid start and goal (:mod:`dsg_gym.envs.tasks`); ``options``
     may give ``start`` and/or ``goal`` as a captured state's name (e.g. ``"state1"``, ``"state2"``) or poses
-    ``[K,7]`` / ``[K,4,4]``; other keys raise ``ValueError``. Reward: dense, from the pose error (see
+    ``[K,7]`` / ``[K,4,4]``; other keys raise ``ValueError``, as do given poses outside the workspace or, per
+    collision mode, interpenetrating (``reject`` refuses such a start, ``settle`` settles it, ``ignore`` accepts
+    it; ``reject`` and ``settle`` refuse such a goal). Reward: dense, from the pose error (see
     :mod:`~dsg_gym.envs.tasks`). ``terminated`` on success (all objects within the position and rotation
     tolerances); ``truncated`` after ``max_episode_steps``. ``info``: ``success``, ``position_errors``,
-    ``rotation_errors`` (``[K]``), ``collision`` (the requested move interpenetrated or left the table),
+    ``rotation_errors`` (``[K]``), ``collision`` (the requested move interpenetrated or left the workspace),
     ``rejected`` (``[K]`` bool: moves undone), ``penetrating_pairs``, ``out_of_bounds``, ``settled``.
     """
 
@@ -195,13 +165,14 @@ class DSGWorldEnv(gym.Env):
         background_color=(0.0, 0.0, 0.0),
         max_episode_steps: int | None = None,
         render_settings=None,
+        render_goal: bool = False,
     ):
         super().__init__()
         from ..physics import PhysicsProxy  # MuJoCo; the renderer (numba) is imported below
 
-        self.width, self.height = _positive_int("width", width), _positive_int("height", height)
-        self.render_width = _positive_int("render_width", render_width)
-        self.render_height = _positive_int("render_height", render_height)
+        self.width, self.height = positive_int("width", width), positive_int("height", height)
+        self.render_width = positive_int("render_width", render_width)
+        self.render_height = positive_int("render_height", render_height)
         if isinstance(obs, str):
             obs = (obs,)
         obs = tuple(obs)
@@ -221,7 +192,7 @@ class DSGWorldEnv(gym.Env):
             if not np.isfinite(v) or v <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
         if max_episode_steps is not None:
-            max_episode_steps = _positive_int("max_episode_steps", max_episode_steps)
+            max_episode_steps = positive_int("max_episode_steps", max_episode_steps)
         bgc = np.asarray(background_color, dtype=np.float64)
         if bgc.shape != (3,) or not np.all(np.isfinite(bgc)) or bgc.min() < 0 or bgc.max() > 1:
             raise ValueError(f"background_color must be 3 numbers in [0, 1], got {background_color!r}")
@@ -245,11 +216,11 @@ class DSGWorldEnv(gym.Env):
             raise ValueError(f"task must be a TaskParams or a dict of its fields, got {type(task).__name__}")
 
         self.world = _resolve_world(world)
-        self.cameras, self._multi = _resolve_cameras(cameras, self.world.cameras, self.width, self.height)
+        self.cameras, self._multi = resolve_cameras(cameras, self.world.cameras, self.width, self.height)
         self.action_mode, self.collision = action_mode, collision
         self.max_translation, self.max_rotation = float(max_translation), float(max_rotation)
         self.incremental = bool(incremental)
-        self.render_mode = render_mode
+        self.render_mode, self.render_goal = render_mode, check_render_goal(render_goal)
         self.background_color = tuple(float(c) for c in bgc)
         self.max_episode_steps = max_episode_steps
         self.physics = PhysicsProxy(self.world)
@@ -275,9 +246,12 @@ class DSGWorldEnv(gym.Env):
             space["mask"] = spaces.Box(0, self.K, hw, np.uint8)
         if "depth" in obs:
             space["depth"] = spaces.Box(0.0, np.inf, hw, np.float32)
+        ws = self.physics.workspace
+        low = np.tile([*ws.lo, -1.0, -1.0, -1.0, -1.0], (self.K, 1))
+        high = np.tile([*ws.hi, 1.0, 1.0, 1.0, 1.0], (self.K, 1))
         if "poses" in obs:
-            space["poses"] = spaces.Box(-np.inf, np.inf, (self.K, 7), np.float64)
-        space["goal"] = spaces.Box(-np.inf, np.inf, (self.K, 7), np.float64)
+            space["poses"] = spaces.Box(low, high, (self.K, 7), np.float64)
+        space["goal"] = spaces.Box(low, high, (self.K, 7), np.float64)
         self.observation_space = spaces.Dict(space)
 
         self._renderer = None
@@ -344,7 +318,8 @@ class DSGWorldEnv(gym.Env):
                 Cameras(c.viewmats, ks, self.render_width, self.render_height)
             )
         out = self._view_renderer.render(self._poses, rgb=True, mask=False, depth=False)
-        return np.concatenate(list(out.rgb), axis=1)
+        rgb = overlay_goal(self, out.rgb) if self.render_goal else out.rgb
+        return np.concatenate(list(rgb), axis=1)
 
     # ------------------------------------------------------------------ episodes
     def _pose_option(self, name: str, value) -> np.ndarray:
@@ -354,7 +329,7 @@ class DSGWorldEnv(gym.Env):
                     f"options[{name!r}]: unknown state {value!r}; this world has {sorted(self.world.states)}"
                 )
             return matrix_to_pose7(self.world.states[value])
-        return as_poses7(value, self.K, f"options[{name!r}]")
+        return as_poses7(real_array(value, f"options[{name!r}]"), self.K, f"options[{name!r}]")
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         info = self._start_episode(seed, options)
@@ -370,6 +345,11 @@ class DSGWorldEnv(gym.Env):
             raise ValueError(f"unknown reset options {unknown}; expected any of {RESET_OPTIONS}")
         start = self._pose_option("start", options["start"]) if options.get("start") is not None else None
         goal = self._pose_option("goal", options["goal"]) if options.get("goal") is not None else None
+        report, settled = None, False
+        if start is not None:  # outside the workspace or (per collision mode) overlapping: ValueError
+            start, report, settled = check_start(self.physics, start, self.collision)
+        if goal is not None:
+            check_goal(self.physics, goal, self.collision)
         super().reset(seed=seed)
         rng = self.np_random
         if start is None:
@@ -377,8 +357,9 @@ class DSGWorldEnv(gym.Env):
         if goal is None:
             goal = self.task.sample_goal(rng, start)
         self._poses, self._goal, self._steps = start, goal, 0
-        report = self.physics.check(start, distance=False)
-        return self._info(np.zeros(self.K, bool), report, collided=False, settled=False)
+        if report is None:
+            report = self.physics.check(start, distance=False)
+        return self._info(np.zeros(self.K, bool), report, collided=False, settled=settled)
 
     def _info(self, rejected, report, collided: bool, settled: bool, errors=None) -> dict[str, Any]:
         pe, re = self.task.errors(self._poses, self._goal) if errors is None else errors
@@ -396,23 +377,16 @@ class DSGWorldEnv(gym.Env):
 
     # ------------------------------------------------------------------ actions
     def _check_action(self, action) -> np.ndarray:
-        try:
-            a = np.asarray(action, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"action must be numeric, got {type(action).__name__}") from None
-        if a.shape != self.action_space.shape:
-            raise ValueError(f"action has shape {a.shape}, expected {self.action_space.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError("action contains NaN or Inf")
-        return np.clip(a, -1.0, 1.0).reshape(self.K, self._n)
+        """The action as ``[K, n]`` float64 in [-1, 1] (:func:`~dsg_gym.envs.checks.check_action`)."""
+        return check_action(action, self.action_space.shape, self.K, self._n)
 
     def _target(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Candidate poses ``[K,7]`` and which objects the action moves."""
         p = self._poses.copy()
         if self.action_mode == "absolute":
-            t = self.world.table
-            lo = np.array([t.xmin, t.ymin, t.z])
-            hi = np.array([t.xmax, t.ymax, t.z + 0.3])
+            ws = self.physics.workspace
+            lo = np.array(ws.lo)
+            hi = np.array([ws.hi[0], ws.hi[1], ws.lo[2] + ABSOLUTE_Z_SPAN])
             q = a[:, 3:7]
             if np.any(np.linalg.norm(q, axis=1) < 1e-6):
                 raise ValueError("absolute action: a target quaternion is zero")
@@ -464,15 +438,16 @@ class DSGWorldEnv(gym.Env):
         if self.collision == "reject":
             cand, rejected, report = self._reject(cand, moved, report, bounds_only=False)
         elif self.collision == "settle":
-            cand, rejected, _ = self._reject(cand, moved, report, bounds_only=True)
+            cand, rejected, report = self._reject(cand, moved, report, bounds_only=True)
             if moved.any():
-                cand = self.physics.settle(cand)
-                settled = True
-                # resting poses that leave the table (pushed off) are undone as well
-                report = self.physics.check(cand, distance=False)
-                cand, more, report = self._reject(cand, np.ones(self.K, bool), report, bounds_only=True,
-                                                  previous=self._poses)  # fmt: skip
-                rejected |= more
+                rest = settle_checked(self.physics, cand)
+                if rest is None:  # no rest in the workspace without penetrating (e.g. pushed off): undo all
+                    cand, rejected = self._poses, moved.copy()
+                    report = self.physics.check(cand, tol=SETTLE_TOLERANCE, distance=False)
+                else:
+                    (cand, report), settled = rest, True
+        else:  # ignore: collisions stay, leaving the workspace does not
+            cand, rejected, report = self._reject(cand, moved, report, bounds_only=True)
         self._poses = cand
         self._steps += 1
         errors = self.task.errors(self._poses, self._goal)
@@ -481,9 +456,9 @@ class DSGWorldEnv(gym.Env):
         info = self._info(rejected, report, collided, settled, errors)
         return reward, success, bool(truncated and not success), info
 
-    def _reject(self, cand, moved, report, bounds_only: bool, previous=None):
+    def _reject(self, cand, moved, report, bounds_only: bool):
         """Undo the moves of the moved objects involved in a violation until the configuration is valid."""
-        prev = self._poses if previous is None else previous
+        prev = self._poses
         rejected = np.zeros(self.K, dtype=bool)
         for _ in range(self.K + 1):
             bad = set(report.out_of_bounds)

@@ -2,31 +2,57 @@
 
 Every writer of dsg-gym and train_world (world files, PLY, USD stages, episodes, datasets, captures, reports)
 goes through this module. A file is written under a hidden temporary name in the target's folder,
-``.<name>.tmp-<random><suffix>``, flushed to disk (``fsync``) and renamed over the target with ``os.replace``
-(atomic within one file system); on any exception, ``KeyboardInterrupt`` included, the temporary is removed
-and the target is left as it was. Files get the mode a plain ``open`` gives (``0o666`` less the umask). A
-folder is built as a hidden sibling with the same kind of name and renamed into place.
-:func:`remove_partial` deletes the temporaries a killed process left behind. Missing parent folders are
-created.
+``.<name>.tmp-<pid>-<host>-<random><suffix>`` (the writing process's id and a hash of the machine's name),
+flushed to disk (``fsync``) and renamed over the target with ``os.replace`` (atomic within one file system); on
+any exception, ``KeyboardInterrupt`` included, the temporary is removed and the target is left as it was. Files
+get the mode a plain ``open`` gives (``0o666`` less the umask). A folder is built as a hidden sibling with the
+same kind of name and renamed into place. :func:`remove_partial` deletes the temporaries a killed process left
+behind (with ``stale_only``, only those whose writer no longer runs: what a writer calls before writing its
+target). Missing parent folders are created.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import secrets
 import shutil
+import socket
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
 __all__ = ["TMP_TAG", "atomic_dir", "atomic_path", "atomic_write_bytes", "remove_partial"]
 
-#: marks a temporary: ``.<target name><TMP_TAG><random>``
+#: marks a temporary: ``.<target name><TMP_TAG><pid>-<host>-<random>``
 TMP_TAG = ".tmp-"
+_HOST = f"{zlib.crc32(socket.gethostname().encode()):08x}"
+_OWNER = re.compile(re.escape(TMP_TAG) + r"(\d+)-([0-9a-f]{8})-[0-9a-f]{12}")
 
 
 def _temp_sibling(target: Path, suffix: str = "") -> Path:
-    return target.parent / f".{target.name}{TMP_TAG}{secrets.token_hex(6)}{suffix}"
+    return target.parent / f".{target.name}{TMP_TAG}{os.getpid()}-{_HOST}-{secrets.token_hex(6)}{suffix}"
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # it exists but belongs to someone else, or this system cannot tell
+        return True
+    return True
+
+
+def _stale(name: str) -> bool:
+    """Whether the temporary ``name`` was left by a process of this machine that no longer runs (a name without
+    the writer's id is never judged stale)."""
+    found = list(_OWNER.finditer(name))
+    if not found:
+        return False
+    pid, host = int(found[-1].group(1)), found[-1].group(2)
+    return host == _HOST and pid != os.getpid() and not _running(pid)
 
 
 def _fsync(path: Path) -> None:
@@ -108,12 +134,14 @@ def _remove(p: Path) -> None:
         p.unlink(missing_ok=True)
 
 
-def remove_partial(folder: str | os.PathLike, name: str = "") -> None:
+def remove_partial(folder: str | os.PathLike, name: str = "", *, stale_only: bool = False) -> None:
     """Delete the temporaries interrupted writes left in ``folder``: those of the target ``name``, or all of
-    them when ``name`` is empty."""
+    them when ``name`` is empty. ``stale_only``: only those whose writer, a process of this machine, no longer
+    runs (safe while other processes write the same target)."""
     folder = Path(folder)
     if not folder.is_dir():
         return
     for p in folder.iterdir():
         if p.name.startswith(f".{name}{TMP_TAG}") if name else (p.name.startswith(".") and TMP_TAG in p.name):
-            _remove(p)
+            if not stale_only or _stale(p.name):
+                _remove(p)

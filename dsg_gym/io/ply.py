@@ -42,7 +42,7 @@ from dsg_gym.gaussians import (
     activate_scale,
     sh_degree_from_coeffs,
 )
-from dsg_gym.io.atomic import atomic_path
+from dsg_gym.io.atomic import atomic_path, remove_partial
 
 __all__ = ["PlyFormatError", "read_ply", "write_ply", "read_ply_header", "PlyHeader"]
 
@@ -179,8 +179,8 @@ def read_ply(path: str | os.PathLike) -> GaussianSet:
     magic, missing ``end_header``, unsupported format (ASCII, ...), missing required
     properties, an ``f_rest`` count that is not ``3 * ((d+1)^2 - 1)`` for d in 0..3,
     non-contiguous ``f_rest_*`` / ``obj_dc_*`` numbering, a body shorter than
-    ``vertex_count * stride``, non-finite values, non-integer labels and activated
-    values that overflow float32.
+    ``vertex_count * stride``, no vertices at all (``element vertex 0``), non-finite
+    values, non-integer labels and activated values that overflow float32.
     """
     name = str(path)
     with open(path, "rb") as fh:
@@ -211,6 +211,8 @@ def read_ply(path: str | os.PathLike) -> GaussianSet:
 
     dtype = header.dtype()
     n = header.vertex_count
+    if n == 0:
+        raise fail("the PLY has no Gaussians (element vertex 0); a 3DGS PLY holds at least one")
     need = n * dtype.itemsize
     have = len(data) - header.vertex_offset
     if have < need:
@@ -312,11 +314,18 @@ def write_ply(path: str | os.PathLike, gaussians: GaussianSet, *, normals: bool 
     ``normals``: write zero ``nx ny nz`` (Inria layout, default) or omit them (gsplat).
     ``labels``: write the ``label`` property (float32) always (True), never (False) or only
     when some label is non-zero (None, default). The file is written atomically
-    (:mod:`dsg_gym.io.atomic`). Returns the path.
+    (:mod:`dsg_gym.io.atomic`; the temporaries of killed writes to ``path`` are deleted
+    first). An empty set raises ``ValueError`` (a PLY without vertices is not read back).
+    Returns the path.
     """
     path = Path(path)
+    if gaussians.num == 0:
+        raise ValueError(
+            f"{path}: nothing to write, the set has no Gaussians (read_ply refuses a PLY without vertices)"
+        )
     names, table = encode_vertices(gaussians, normals=normals, labels=labels)
     payload = _header_bytes(table.shape[0], names)
+    remove_partial(path.parent, path.name, stale_only=True)
     with atomic_path(path) as tmp, open(tmp, "xb") as fh:
         fh.write(payload)
         fh.write(table.tobytes())

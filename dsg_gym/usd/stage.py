@@ -38,10 +38,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdPhysics, Vt
 
 from dsg_gym.gaussians import GaussianSet
-from dsg_gym.io.atomic import atomic_path
+from dsg_gym.io.atomic import atomic_path, remove_partial
 from dsg_gym.poses import check_rigid, quat_hemisphere_continuous, rotmat_to_quat
 from dsg_gym.usd.cameras import UsdCamera, check_camera, read_camera, write_camera
 from dsg_gym.usd.collider import MIN_THICKNESS_M, box_mesh, convex_hull_mesh, write_collider
@@ -266,8 +266,10 @@ def export_stage(
     extending ``TABLE_THICKNESS_M`` below the top.
 
     The stage is built in memory and written atomically (:mod:`dsg_gym.io.atomic`): readers never
-    see a partial file and no temporary file is left behind on failure. Invalid input raises ``ValueError`` naming
-    the problem (wrong extension, non-rigid or non-finite pose, episode shape mismatch, ...).
+    see a partial file and no temporary file is left behind on failure; the temporaries of earlier exports to
+    ``path`` that were killed are deleted first. Invalid input raises ``ValueError`` naming the problem (wrong
+    extension, non-rigid or non-finite pose, episode shape mismatch, ...); a place USD cannot write raises
+    ``OSError`` with USD's reason.
     """
     path = _check_path(path)
     if not isinstance(background, GaussianSet):
@@ -302,10 +304,21 @@ def export_stage(
     stage = Usd.Stage.CreateInMemory(f"dsg{path.suffix}")
     _build(stage, background, objects, poses, cameras, mpu, up_axis, kpu, episode, table_bounds)
 
+    remove_partial(path.parent, path.name, stale_only=True)  # what killed exports to this path left behind
     with atomic_path(path, suffix=path.suffix) as tmp:  # USD picks the file format by extension
-        if not stage.GetRootLayer().Export(str(tmp)):
-            raise OSError(f"export_stage: USD could not write {str(tmp)!r}")
+        try:
+            written = stage.GetRootLayer().Export(str(tmp))
+        except Tf.ErrorException as e:
+            raise OSError(f"export_stage: cannot write {str(path)!r}: {_usd_reason(e)}") from None
+        if not written:
+            raise OSError(f"export_stage: USD could not write {str(path)!r}")
     return path
+
+
+def _usd_reason(err: Exception) -> str:
+    """The first message of a USD error, without USD's source locations (one line)."""
+    found = re.findall(r" : '(.*)'$", str(err), flags=re.MULTILINE)
+    return found[0] if found else " ".join(str(err).split())
 
 
 # ---------------------------------------------------------------------------------------- reading

@@ -82,9 +82,10 @@ def ld_matrices(dq: np.ndarray, dt: np.ndarray) -> np.ndarray:
 def env_reference(env, actions: np.ndarray, start: tuple[np.ndarray, np.ndarray] | None = None):
     """Positions ``[K,3]`` and quaternions ``[K,4]`` (longdouble) after ``actions`` under the update rule of a
     ``DSGWorldEnv`` in ``delta``/``se3`` mode with ``collision="ignore"``, applied exactly: translations summed
-    and rotations composed (``dq * q``, renormalised) in longdouble. The per-step increments are the float64
-    numbers the env itself forms from each action, so the difference is the env's own rounding. ``start``: a
-    previous result to continue from (default: the env's current poses)."""
+    and rotations composed (``dq * q``, renormalised) in longdouble; an object's move that would take it out of
+    the workspace is skipped, as the env undoes it (``env.physics.workspace_problems``). The per-step increments
+    are the float64 numbers the env itself forms from each action, so the difference is the env's own rounding.
+    ``start``: a previous result to continue from (default: the env's current poses)."""
     if start is None:
         p = env.poses
         t, q = p[:, :3].astype(LD), p[:, 3:].astype(LD)
@@ -94,12 +95,17 @@ def env_reference(env, actions: np.ndarray, start: tuple[np.ndarray, np.ndarray]
     for a in actions:
         a = np.clip(np.asarray(a, dtype=np.float64), -1, 1).reshape(env.K, n)
         moved = np.any(a != 0.0, axis=1)
-        t[moved] += env.max_translation * a[moved, :3]
+        nt, nq = t.copy(), q.copy()
+        nt[moved] += env.max_translation * a[moved, :3]
         if env.action_mode == "delta":
             dq = P.yaw_to_quat(env.max_rotation * a[:, 3])
         else:
             dq = P.axis_angle_to_quat(env.max_rotation * a[:, 3:6])
-        q[moved] = qnormalize(qmul(dq.astype(LD), q))[moved]
+        nq[moved] = qnormalize(qmul(dq.astype(LD), q))[moved]
+        p7 = np.concatenate([nt.astype(np.float64), nq.astype(np.float64)], axis=1)
+        keep = [k for k in env.physics.workspace_problems(p7) if moved[k]]
+        nt[keep], nq[keep] = t[keep], q[keep]
+        t, q = nt, nq
     return t, q
 
 

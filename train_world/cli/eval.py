@@ -1,5 +1,6 @@
 """``dsg-eval``: score a world against a capture (PSNR, SSIM, mask IoU) and write error grids; the work is
-:mod:`train_world.eval.evaluate`.
+:mod:`train_world.eval.evaluate`. A world trained in a frame estimated from photos is scored against a ground
+truth in its own frame through the similarity fitted from their cameras (:mod:`train_world.eval.frames`).
 """
 
 from __future__ import annotations
@@ -9,10 +10,11 @@ import json
 import sys
 from pathlib import Path
 
-from dsg_gym.world import WorldFormatError
+from dsg_gym.world import WorldFormatError, load_world
 from train_world.capture import CaptureError
 from train_world.eval import evaluate as _lib
 from train_world.eval.evaluate import default_state, evaluate, evaluate_test_states
+from train_world.eval.frames import fit_frame_alignment, needs_alignment
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -23,13 +25,34 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("world", type=Path, help="world file written by dsg-train")
-    p.add_argument("capture", type=Path, help="the capture (or NeRF-Blender folder) it was trained on")
+    p.add_argument(
+        "capture",
+        type=Path,
+        help="the capture (or NeRF-Blender folder) it was trained on, or the ground truth of that capture "
+        "(e.g. the ground_truth/ folder of dsg-synth --as-photos) for a world trained on a dsg-capture capture",
+    )
     p.add_argument("--out", type=Path, required=True, help="output folder for report.json/report.md/grid.png")
     p.add_argument(
         "--state",
         help="evaluate all views of this state at its object poses; 'test': every test state of the capture "
         "(default: 'test' for a two-state world, or one trained without held-out views, on a capture with test "
         "states; else the held-out views of the training state)",
+    )
+    frame = p.add_mutually_exclusive_group()
+    frame.add_argument(
+        "--align-frames",
+        dest="align",
+        action="store_true",
+        default=None,
+        help="fit the similarity between the capture's frame and the world's from the world's training cameras "
+        "and evaluate through it (default when the world was trained on a dsg-capture capture and CAPTURE is "
+        "another folder: its ground truth)",
+    )
+    frame.add_argument(
+        "--same-frame",
+        dest="align",
+        action="store_false",
+        help="take the capture to be in the world's frame (the default for any other world)",
     )
     p.add_argument(
         "--suite",
@@ -47,15 +70,38 @@ def main(argv: list[str] | None = None) -> int:
         return suite_main([a for a in argv if a != "--suite"])
     args = _parser().parse_args(argv)
     try:
+        world = load_world(args.world)
+        align = needs_alignment(world, args.capture) if args.align is None else args.align
+        alignment = fit_frame_alignment(world, args.capture) if align else None
+        if alignment is not None:
+            a = alignment.to_dict()
+            print(
+                f"dsg-eval: ground-truth frame -> world frame: scale {a['scale']:.6f}, rotation "
+                f"{a['rotation_deg']:.4f} deg, translation {[round(x, 6) for x in a['translation']]}; "
+                f"{a['cameras']} cameras, centre error rms {a['camera_centre_rms']:.3g} max "
+                f"{a['camera_centre_max']:.3g} (ground-truth units), rotation rms "
+                f"{a['camera_rotation_rms_deg']:.3g} deg",
+                file=sys.stderr,
+            )
         state = args.state if args.state is not None else default_state(args.world, args.capture)
         if state == "test":
-            r = evaluate_test_states(args.world, args.capture, args.out)
+            r = evaluate_test_states(args.world, args.capture, args.out, alignment=alignment)
+        elif alignment is not None and state is None:
+            raise ValueError(
+                f"{args.capture}: a ground truth in another frame is scored at its test states or a named "
+                "--state; it has no test states"
+            )
         else:
-            r = evaluate(args.world, args.capture, args.out, state=state)
+            r = evaluate(args.world, args.capture, args.out, state=state, alignment=alignment)
     except (WorldFormatError, CaptureError, ValueError, KeyError) as e:
         print(f"dsg-eval: error: {e}", file=sys.stderr)
         return 2
-    print(json.dumps({"out": str(args.out), "views": r["views"], "mean": r["mean"]}))
+    summary = {"out": str(args.out), "views": r["views"], "mean": r["mean"]}
+    if alignment is not None:
+        summary["frame_alignment"] = {
+            k: v for k, v in alignment.to_dict().items() if k not in ("rotation", "identity")
+        }
+    print(json.dumps(summary))
     return 0
 
 

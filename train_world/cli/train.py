@@ -36,10 +36,12 @@ import sys
 import time
 from pathlib import Path
 
+from train_world.dual_state.config import DualConfig
 from train_world.dual_state.views import (
     HOLDOUT_WITHOUT_TEST_STATES,
     default_holdout_every,
     has_two_training_states,
+    motions_estimated,
 )
 from train_world.single_state.presets import (
     PRESETS,
@@ -195,6 +197,34 @@ def two_state_parser() -> argparse.ArgumentParser:
         default=2,
         help="pseudo-state loss every n-th joint step (default 2; paper: 1)",
     )
+    motions = p.add_mutually_exclusive_group()
+    motions.add_argument(
+        "--refine-motions",
+        dest="refine_motions",
+        action="store_true",
+        default=None,
+        help="optimise each object's motion between the two states in the joint phase (default when the "
+        "capture's motions are estimates, i.e. made by dsg-capture)",
+    )
+    motions.add_argument(
+        "--freeze-motions",
+        dest="refine_motions",
+        action="store_false",
+        help="take the capture's motions as exact, as DSG-World does (default for synthetic captures)",
+    )
+    p.add_argument(
+        "--motion-lr-translation",
+        type=float,
+        default=DualConfig.motion_lr_translation,
+        help="motion refinement: translation learning rate, times the scene extent "
+        f"(default {DualConfig.motion_lr_translation:g})",
+    )
+    p.add_argument(
+        "--motion-lr-rotation",
+        type=float,
+        default=DualConfig.motion_lr_rotation,
+        help=f"motion refinement: rotation learning rate in radians (default {DualConfig.motion_lr_rotation:g})",
+    )
     p.add_argument(
         "--refine-steps",
         type=int,
@@ -219,9 +249,7 @@ def two_state_parser() -> argparse.ArgumentParser:
     return p
 
 
-def two_state_config(args: argparse.Namespace):
-    from train_world.dual_state.trainer import DualConfig
-
+def two_state_config(args: argparse.Namespace) -> DualConfig:
     preset = dataclasses.replace(
         scaled_preset(args.preset, args.iterations, args.max_gaussians, two_state=True),
         **mip_overrides(args.mip),
@@ -247,7 +275,25 @@ def two_state_config(args: argparse.Namespace):
         tau=args.tau,
         prune_every=args.prune_every,
         pseudo_every=args.pseudo_every,
+        refine_motions=motions_estimated(args.capture)
+        if args.refine_motions is None
+        else args.refine_motions,
+        motion_lr_translation=args.motion_lr_translation,
+        motion_lr_rotation=args.motion_lr_rotation,
     )
+
+
+def motion_lines(record: dict, units: str) -> list[str]:
+    """One line per object of a world's ``metadata["motions"]``: how far refinement moved and turned it (mm
+    when the units are metres, else scene units)."""
+    out = []
+    for o in record["objects"]:
+        if units == "metres":
+            dist = f"{o['correction_translation'] * 1000:.2f} mm"
+        else:
+            dist = f"{o['correction_translation']:.5f} scene units"
+        out.append(f"motion of {o['name']!r} corrected by {dist}, {o['correction_rotation_deg']:.3f} deg")
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -344,7 +390,8 @@ def main_two_state(argv: list[str] | None = None) -> int:
             f"dsg-train: two states {config.states}, {len(trainer.data1)}+{len(trainer.data2)} training views "
             f"{trainer.data1.width}x{trainer.data1.height}, {trainer.data1.num_classes - 1} objects, ablation "
             f"{config.ablation}, tau {config.tau} {trainer.data1.units}, preset {config.base.preset.name} "
-            f"({config.base.preset.iterations} steps, joint from {trainer.joint_start})",
+            f"({config.base.preset.iterations} steps, joint from {trainer.joint_start}), motions "
+            f"{'refined' if config.refine_motions else 'frozen'}",
             file=sys.stderr,
         )
         if args.stop_at_joint:
@@ -363,6 +410,9 @@ def main_two_state(argv: list[str] | None = None) -> int:
             return 0
         trainer.train(progress=not args.quiet)
         world = trainer.world()
+        if config.refine_motions:
+            for line in motion_lines(world.metadata["motions"], trainer.data1.units):
+                print(f"dsg-train: {line}", file=sys.stderr)
         views = {d.state: StateViews(d.images, d.viewmats, d.Ks) for d in (trainer.data1, trainer.data2)}
         world, refined = refine_world(world, views, refine, progress=not args.quiet)
         from dsg_gym.world import write_world
@@ -386,6 +436,11 @@ def main_two_state(argv: list[str] | None = None) -> int:
         "field_sizes": dual["field_sizes"],
         "object_sources": dual["object_sources"],
         "background_from_2": dual["background_from_2"],
+        "motions_refined": world.metadata["motions"]["refined"],
+        "motion_corrections": [
+            {k: o[k] for k in ("name", "correction_translation", "correction_rotation_deg")}
+            for o in world.metadata["motions"]["objects"]
+        ],
         "train_seconds": round(trainer.elapsed, 1),
         "refine_steps": refine.steps,
         "refine_seconds": refined.get("seconds", 0.0),

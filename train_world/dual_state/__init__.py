@@ -3,7 +3,8 @@
 Modules: :mod:`.transfer` (object-aware state transfer T), :mod:`.losses` (L_align, L_pseudo),
 :mod:`.pseudo` (collision-free pseudo-state sampler), :mod:`.merge` (co-pruning, co-pasting, the merged
 world), :mod:`.world` (``MergeInputs``, the merged world), :mod:`.views` (which views train),
-:mod:`.refine` (refinement of the merged world), :mod:`.trainer` (``DualTrainer``, ``DualConfig``). The
+:mod:`.refine` (refinement of the merged world), :mod:`.motions` (the objects' motions as parameters),
+:mod:`.config` (``DualConfig``), :mod:`.trainer` (``DualTrainer``). The
 ``dsg-train`` command is :mod:`train_world.cli.train`.
 """
 

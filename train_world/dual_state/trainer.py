@@ -14,6 +14,11 @@ saves a tenth of the training time). Co-pruning (C) runs every
 densification (:class:`~train_world.single_state.strategy.DensifyStrategy`, driven by its reconstruction render);
 the classifier has one Adam. Object labels (for the transfer) are the classifier's argmax on each Gaussian's
 identity feature, recomputed every step. The merged world is built by :mod:`.world`.
+
+With ``refine_motions`` the objects' motions between the two states are parameters too (:mod:`.motions`):
+``L_align`` moves each field's object Gaussians by the corrected motions, and a separate Adam steps the
+corrections in the joint phase (and only when B is on: ``L_align`` is where their gradients come from).
+Co-pruning, the pseudo-states, the footprints and the merged world use the current motions and state-2 poses.
 """
 
 from __future__ import annotations
@@ -21,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +33,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from train_world.dual_state.config import BRANCH_OPTIONS, DualConfig, joint_start_step, training_options
 from train_world.dual_state.losses import align_loss, pseudo_loss
 from train_world.dual_state.merge import co_prune_masks, object_footprints_xy, robust_object_points
+from train_world.dual_state.motions import ObjectMotions, motion_lrs, motions_record
 from train_world.dual_state.pseudo import footprint_radii, sample_pseudo_state
 from train_world.dual_state.transfer import (
     ObjectTransfer,
@@ -38,6 +44,7 @@ from train_world.dual_state.transfer import (
     object_labels,
     relative_transforms,
 )
+from train_world.dual_state.views import view_names
 from train_world.dual_state.world import MergeInputs, merged_world
 from train_world.single_state.checkpoint import (
     load_checkpoint,
@@ -47,7 +54,6 @@ from train_world.single_state.checkpoint import (
 )
 from train_world.single_state.data import TrainData, load_training_data
 from train_world.single_state.field import PARAM_NAMES, SegmentedField
-from train_world.single_state.presets import TrainConfig
 from train_world.single_state.trainer import (
     Trainer,
     TrainingDiverged,
@@ -57,72 +63,6 @@ from train_world.single_state.trainer import (
 )
 
 __all__ = ["DualConfig", "DualTrainer", "joint_start_step"]
-
-
-def joint_start_step(joint_from: float, iterations: int) -> int:
-    """The first joint step of a two-state run of ``iterations`` steps whose first ``joint_from`` fraction is
-    reconstruction only."""
-    return round(joint_from * iterations)
-
-
-def _training_options(config: DualConfig) -> DualConfig:
-    """``config`` without what only acts after training (the refinement's step count), for comparing a
-    checkpoint's options with a run's."""
-    preset = dataclasses.replace(config.base.preset, dual_refine_steps=0)
-    return dataclasses.replace(config, base=dataclasses.replace(config.base, preset=preset))
-
-
-@dataclass(frozen=True)
-class DualConfig:
-    """Two-state training options. ``base``: the reconstruction configuration (preset, seed, ...; its
-    ``state`` is ignored). ``joint_from``: fraction of the iterations that is reconstruction only (paper:
-    0.5). ``use_align``/``use_prune``/``use_pseudo``: B, C, P of the ablation. ``tau``: co-pruning distance
-    in scene units (metres for synthetic captures: 0.02 = 2 cm, about a quarter of the smallest default
-    object). ``footprint_margin``: dilation of object footprints for co-pasting/co-pruning (scene units)."""
-
-    base: TrainConfig
-    states: tuple[str, str] = ("state1", "state2")
-    joint_from: float = 0.5
-    lambda_align: float = 1.0
-    lambda_pseudo: float = 1.0
-    use_align: bool = True
-    use_prune: bool = True
-    use_pseudo: bool = True
-    tau: float = 0.02
-    prune_every: int = 500
-    pseudo_every: int = 2
-    pseudo_margin: float = 0.005
-    footprint_margin: float = 0.01
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.joint_from <= 1.0:
-            raise ValueError(f"joint_from must be in [0, 1], got {self.joint_from}")
-        if self.tau <= 0:
-            raise ValueError(f"tau must be > 0 (scene units), got {self.tau}")
-        if self.prune_every < 1 or self.pseudo_every < 1:
-            raise ValueError("prune_every and pseudo_every must be >= 1")
-        if len(self.states) != 2 or self.states[0] == self.states[1]:
-            raise ValueError(f"states must be two different names, got {self.states}")
-
-    @property
-    def ablation(self) -> str:
-        return (
-            "+".join(n for n, on in zip("BCP", (self.use_align, self.use_prune, self.use_pseudo)) if on)
-            or "-"
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["base"] = self.base.to_dict()
-        d["states"] = list(self.states)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> DualConfig:
-        d = dict(d)
-        d["base"] = TrainConfig.from_dict(d["base"])
-        d["states"] = tuple(d["states"])
-        return cls(**d)
 
 
 class DualTrainer:
@@ -154,10 +94,16 @@ class DualTrainer:
         self.P1, self.P2 = self.poses[s1], self.poses[s2]
         self.T12 = relative_transforms(self.P1, self.P2)
         self.T21 = relative_transforms(self.P2, self.P1)
+        self.P2_initial = self.P2
+        self.T12_initial = self.P2 @ np.linalg.inv(self.P1)  # float64, as the capture gives it
+        self.motions = ObjectMotions(self.P1, self.P2) if config.refine_motions and len(self.P1) else None
         self.table_bounds = self.data1.table_bounds
         self.rng = np.random.default_rng(config.base.seed + 7919)
         self.generator = torch.Generator().manual_seed(config.base.seed + 7919)
         self.step = 0
+        self.motion_optimizer = None
+        if self.motions is not None:
+            self.motion_optimizer = self.motions.make_optimizer(*self._motion_lrs())
         self.elapsed = 0.0
         self.history: list[dict[str, float]] = []
         self.prune_log: list[dict[str, int]] = []
@@ -171,6 +117,50 @@ class DualTrainer:
     @property
     def fields(self) -> tuple[SegmentedField, SegmentedField]:
         return self.t1.field, self.t2.field
+
+    def _motion_lrs(self) -> tuple[float, float]:
+        """``(translation, rotation)`` learning rates of the motion corrections at this step."""
+        cfg = self.config
+        return motion_lrs(
+            self.step,
+            self.joint_start,
+            self.preset.iterations,
+            cfg.motion_lr_translation * self.t1.extent,
+            cfg.motion_lr_rotation,
+        )
+
+    def _sync_motions(self) -> None:
+        """The float32 motions and the state-2 poses from the motion parameters (after a step or a load)."""
+        if self.motions is None:
+            return
+        self.T12 = torch.from_numpy(self.motions.T12()).float()
+        self.T21 = torch.from_numpy(self.motions.T21()).float()
+        self.P2 = self.motions.P2()
+        self.poses[self.config.states[1]] = self.P2
+
+    def camera_names(self) -> dict[str, list[str]] | None:
+        """Per training state, the names of its views in the order the world stores their cameras."""
+        out = {}
+        for d in (self.data1, self.data2):
+            names = view_names(self.capture, d.state)
+            if len(names) != len(d.all_viewmats):
+                return None
+            out[d.state] = names
+        return out
+
+    def motion_summary(self) -> dict:
+        """The motions as given and as trained (``metadata["motions"]`` of the world, :func:`.motions_record`)."""
+        final = self.T12_initial if self.motions is None else self.motions.T12()
+        return motions_record(
+            self.T12_initial,
+            final,
+            self.P1,
+            self.data1.object_ids,
+            self.data1.object_names,
+            self.data1.units,
+            self.motions is not None,
+            tuple(self.config.states),
+        )
 
     def labels(self) -> tuple[torch.Tensor, torch.Tensor]:
         return object_labels(self.t1.field.features, self.classifier), object_labels(
@@ -270,8 +260,12 @@ class DualTrainer:
         if joint and (cfg.use_align or cfg.use_pseudo):
             lab1, lab2 = self.labels()
         if joint and cfg.use_align:
-            o12 = self._render_moved(t1, ObjectTransfer(lab1, self.T12), self.data2, i2, deg)
-            o21 = self._render_moved(t2, ObjectTransfer(lab2, self.T21), self.data1, i1, deg)
+            if self.motions is not None:  # the motions take gradients through the transferred Gaussians
+                tr12, tr21 = self.motions.transfers(lab1, lab2)
+            else:
+                tr12, tr21 = ObjectTransfer(lab1, self.T12), ObjectTransfer(lab2, self.T21)
+            o12 = self._render_moved(t1, tr12, self.data2, i2, deg)
+            o21 = self._render_moved(t2, tr21, self.data1, i1, deg)
             c2 = self.data2.classes[i2] if self.has_masks else None
             c1 = self.data1.classes[i1] if self.has_masks else None
             f12 = o12.features[0] if self.has_masks else None
@@ -298,7 +292,7 @@ class DualTrainer:
         if not math.isfinite(stats["loss"]):
             raise TrainingDiverged(f"loss became {stats['loss']} at step {self.step + 1}")
         opts = [*t1.optimizers.values(), *t2.optimizers.values(), self.cls_optimizer]
-        for opt in opts:
+        for opt in opts + ([self.motion_optimizer] if self.motion_optimizer is not None else []):
             opt.zero_grad(set_to_none=True)
         loss.backward()
         # a finite loss can still give a non-finite gradient: refuse the step before Adam spreads it
@@ -306,6 +300,7 @@ class DualTrainer:
             (f"{tag}.{k}", v) for tag, t in (("g1", t1), ("g2", t2)) for k, v in t.field.params().items()
         ]
         named += list(self.classifier.named_parameters(prefix="classifier"))
+        named += self.motions.named_parameters() if self.motions is not None else []
         check_gradients(named, self.step + 1, self.last_checkpoint_step)
         for t in (t1, t2):
             t.optimizers["means"].param_groups[0]["lr"] = means_lr(self.step, p.iterations, p.lrs, t.extent)
@@ -313,6 +308,11 @@ class DualTrainer:
             opt.step()
         if self.has_masks:
             self.cls_optimizer.step()
+        if self.motion_optimizer is not None and joint and cfg.use_align:
+            for group, lr in zip(self.motion_optimizer.param_groups, self._motion_lrs()[::-1]):
+                group["lr"] = lr  # groups: rotation, translation
+            self.motion_optimizer.step()
+            self._sync_motions()
         self.step += 1
         t1.strategy.after_backward(self.step, t1.field, t1.optimizers, meta1, t1.generator)
         t2.strategy.after_backward(self.step, t2.field, t2.optimizers, meta2, t2.generator)
@@ -373,6 +373,9 @@ class DualTrainer:
             tensors[f"{tag}/queue"] = t.queue
         tensors.update({f"classifier/{k}": v.data for k, v in self.classifier.named_parameters()})
         tensors.update(optimizer_to_tensors("adam/classifier", self.cls_optimizer))
+        if self.motions is not None:
+            tensors.update(self.motions.state_tensors())
+            tensors.update(optimizer_to_tensors("adam/motions", self.motion_optimizer))
         tensors["rng/torch"] = self.generator.get_state()
         meta = {
             "kind": "dual",
@@ -396,13 +399,14 @@ class DualTrainer:
         tensors, meta = load_checkpoint(path)
         if meta.get("kind") != "dual":
             raise ValueError(f"{path}: not a two-state (dual) checkpoint")
-        stored = _training_options(DualConfig.from_dict(meta["dual_config"]))
-        current = _training_options(self.config)
-        if branch:
-            switches = {k: getattr(self.config, k) for k in ("use_align", "use_prune", "use_pseudo")}
+        stored = training_options(DualConfig.from_dict(meta["dual_config"]))
+        current = training_options(self.config)
+        if branch:  # the switches and the motion options act in the joint phase only
+            switches = {k: getattr(self.config, k) for k in BRANCH_OPTIONS}
             if dataclasses.replace(stored, **switches) != current:
                 raise ValueError(
-                    f"{path}: can only branch from a checkpoint whose options differ in B/C/P alone"
+                    f"{path}: can only branch from a checkpoint whose options differ in B/C/P and the "
+                    "motion refinement alone"
                 )
             if int(meta["step"]) > self.joint_start:
                 raise ValueError(
@@ -435,6 +439,14 @@ class DualTrainer:
                 v.copy_(tensors[f"classifier/{k}"])
         self.cls_optimizer = torch.optim.Adam(self.classifier.parameters(), lr=self.preset.lrs.classifier)
         optimizer_from_tensors("adam/classifier", self.cls_optimizer, tensors)
+        if self.motions is not None:
+            self.motions = ObjectMotions(self.P1, self.P2_initial)
+            if "motions/rotvec" in tensors:  # else branched from a run without refinement: zero corrections
+                self.motions.load_state_tensors(tensors)
+            self.motion_optimizer = self.motions.make_optimizer(*self._motion_lrs())
+            optimizer_from_tensors("adam/motions", self.motion_optimizer, tensors)
+            if self.motion_optimizer.state:  # stepped: as after that step (else the capture's, bit for bit)
+                self._sync_motions()
         self.generator.set_state(tensors["rng/torch"].clone())
         self.rng.bit_generator.state = meta["numpy_rng"]
         self.step = self.t1.step = self.t2.step = int(meta["step"])
@@ -469,6 +481,8 @@ class DualTrainer:
             field_sizes=(self.t1.field.num, self.t2.field.num),
             prune_log=list(self.prune_log[-50:]),
             elapsed=self.elapsed,
+            motions=self.motion_summary(),
+            camera_names=self.camera_names(),
         )
 
     def world(self, extra_metadata: dict[str, Any] | None = None):

@@ -62,13 +62,32 @@ class ObjectTransfer:
     def __init__(self, labels: torch.Tensor, object_T: torch.Tensor):
         object_T = torch.as_tensor(object_T, dtype=torch.float32)
         table = torch.cat([torch.eye(4)[None], object_T], dim=0)
-        k = object_T.shape[0]
+        R = table[:, :3, :3]
+        self._setup(labels, R, table[:, :3, 3], rotmat_to_quat(R))
+
+    @classmethod
+    def from_parts(
+        cls, labels: torch.Tensor, rotations: torch.Tensor, translations: torch.Tensor, quats: torch.Tensor
+    ) -> ObjectTransfer:
+        """``T`` from per-object rotations ``[K,3,3]``, translations ``[K,3]`` and the rotations' unit
+        quaternions ``[K,4]`` (gradients flow to them: the motion refinement of :mod:`.motions`)."""
+        self = cls.__new__(cls)
+        eye = torch.eye(3, dtype=rotations.dtype)[None]
+        self._setup(
+            labels,
+            torch.cat([eye, rotations], dim=0),
+            torch.cat([torch.zeros(1, 3, dtype=translations.dtype), translations], dim=0),
+            torch.cat([torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=quats.dtype), quats], dim=0),
+        )
+        return self
+
+    def _setup(self, labels: torch.Tensor, R: torch.Tensor, t: torch.Tensor, q: torch.Tensor) -> None:
+        """Rows ``[K+1, ...]``: row 0 is the background's identity."""
+        k = R.shape[0] - 1
         if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) > k):
             raise ValueError(f"ObjectTransfer: labels must be in 0..{k}")
         self.labels = labels.long()
-        self.R = table[:, :3, :3]
-        self.t = table[:, :3, 3]
-        self.q = rotmat_to_quat(self.R)
+        self.R, self.t, self.q = R, t, q
         self.moved = torch.nonzero(self.labels > 0).squeeze(1)  # rows of object Gaussians
         self._moved_labels = self.labels[self.moved]
 

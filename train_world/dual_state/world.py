@@ -43,7 +43,10 @@ class MergeInputs:
     the two states' training data; ``background``: the render background colour; ``poses``: every state's
     object poses; ``classifier_weight``/``classifier_bias``: the shared classifier; ``config``: the two-state
     options (``DualConfig.to_dict()``) with ``ablation``, ``states``, ``footprint_margin`` and ``base`` (the
-    single-state config dict); the rest is bookkeeping copied into the world's metadata."""
+    single-state config dict); ``motions``: the motions between the two states as given and as trained
+    (:func:`.motions.motions_record`, stored as ``metadata["motions"]``); ``camera_names``: per training
+    state, the names of its cameras in the stored order (``metadata["camera_names"]``, what ``dsg-eval`` matches
+    a ground-truth capture's cameras by); the rest is bookkeeping copied into the world's metadata."""
 
     fields: tuple[SegmentedField, SegmentedField]
     labels: tuple[torch.Tensor, torch.Tensor]
@@ -67,6 +70,8 @@ class MergeInputs:
     field_sizes: tuple[int, int]
     prune_log: list
     elapsed: float
+    motions: dict | None = None
+    camera_names: dict | None = None
 
 
 def _rows(
@@ -203,6 +208,8 @@ def merged_world(run: MergeInputs, extra_metadata: dict[str, Any] | None = None)
             "co_prune_log": run.prune_log[-50:],
             "train_seconds": round(run.elapsed, 1),
         },
+        **({"motions": run.motions} if run.motions is not None else {}),
+        **({"camera_names": run.camera_names} if run.camera_names else {}),
         **(extra_metadata or {}),
     }
     if "name" in d1.source:

@@ -14,9 +14,16 @@ world does not hold them).
 a world trained without held-out views (as ``dsg-train`` and the baselines train on such captures).
 
 Writes ``DIR/report.json`` (per-view figures and ``"mean": {"psnr", "ssim", "mask_iou"}``), ``DIR/report.md``
-(a Markdown table) and ``DIR/grid.png`` (rows of ground truth | ours | error [| GT mask | our mask]). With
+(a Markdown table) and ``DIR/grid.png`` (rows of ground truth | ours | error [| GT mask | our mask], labelled
+with the column names above and each row's state and view index on its left). With
 ``--state test`` each state's files go to ``DIR/<state>/`` and ``DIR/report.json`` holds each state's mean and
 their mean (``"mean"``, the same keys).
+
+A world trained on a ``dsg-capture`` capture lives in the frame estimated from its photos. Given the ground
+truth of that capture instead (``dsg-synth --as-photos`` writes it to ``ground_truth/``), ``dsg-eval`` fits
+the similarity between the two frames from the world's training cameras (:mod:`train_world.eval.frames`),
+moves the ground truth's test cameras and object poses into the world's frame and scores the test states as
+usual; the reports record the similarity and its residuals under ``"frame_alignment"``.
 
 ``dsg-eval --suite [dsg-suite options]`` runs the DSG-World comparison on the default scenes
 (:mod:`train_world.suite.runner`).
@@ -25,6 +32,7 @@ Example::
 
     dsg-eval worlds/four_mixed.dsgworld data/four_mixed --out eval/four_mixed
     dsg-eval worlds/two_blocks.dsgworld data/two_blocks --out eval/two_blocks --state test
+    dsg-eval worlds/my_table.dsgworld photos/my_table/ground_truth --out eval/my_table
     dsg-eval --suite --out suite --scenes two_blocks,five_small
 """
 
@@ -42,6 +50,7 @@ from dsg_gym.splat import rasterize, spherical_harmonics
 from dsg_gym.world import World, load_world
 from train_world.capture import load_capture
 from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
+from train_world.eval.frames import FrameAlignment
 from train_world.eval.metrics import mask_iou, psnr, ssim
 from train_world.single_state.data import load_eval_views
 
@@ -119,28 +128,71 @@ def _u8(img: np.ndarray) -> np.ndarray:
     return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
-def _grid(rows: list[list[np.ndarray]]) -> np.ndarray:
+def _grid(
+    rows: list[list[np.ndarray]],
+    col_labels: list[str] | None = None,
+    row_labels: list[str] | None = None,
+) -> np.ndarray:
+    """Tiles ``rows[i][j]`` (equal sizes) on white with 2 px borders; ``col_labels`` above the columns and
+    ``row_labels`` (lines split at ``\\n``) left of the rows, in black (pillow's default font); a column or the
+    label column is as wide as its widest label."""
+    from PIL import Image, ImageDraw, ImageFont
+
     pad = 2
     h, w = rows[0][0].shape[:2]
     ncol = max(len(r) for r in rows)
-    out = np.full((len(rows) * (h + pad) + pad, ncol * (w + pad) + pad, 3), 255, np.uint8)
+    font = ImageFont.load_default()
+    draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    size = lambda t: draw.multiline_textbbox((0, 0), t, font=font)[2:]  # noqa: E731
+    cols = [
+        max([w] + ([size(col_labels[j])[0] + 2 * pad] if col_labels and j < len(col_labels) else []))
+        for j in range(ncol)
+    ]
+    left = max([size(t)[0] + 2 * pad for t in row_labels or []], default=0)
+    top = max([size(t)[1] + 2 * pad for t in col_labels or []], default=0)
+    rh = max([h] + [size(t)[1] for t in row_labels or []])
+    x0 = np.cumsum([left + pad] + [c + pad for c in cols[:-1]])
+    out = np.full((top + len(rows) * (rh + pad) + pad, int(x0[-1]) + cols[-1] + pad, 3), 255, np.uint8)
     for i, r in enumerate(rows):
+        y = top + pad + i * (rh + pad) + (rh - h) // 2
         for j, img in enumerate(r):
-            out[
-                pad + i * (h + pad) : pad + i * (h + pad) + h, pad + j * (w + pad) : pad + j * (w + pad) + w
-            ] = img
-    return out
+            x = int(x0[j]) + (cols[j] - w) // 2
+            out[y : y + h, x : x + w] = img
+    if not (col_labels or row_labels):
+        return out
+    im = Image.fromarray(out)
+    d = ImageDraw.Draw(im)
+    for j, t in enumerate((col_labels or [])[:ncol]):
+        d.text((int(x0[j]) + (cols[j] - size(t)[0]) // 2, pad), t, fill=(0, 0, 0), font=font)
+    for i, t in enumerate((row_labels or [])[: len(rows)]):
+        d.multiline_text(
+            (pad, top + pad + i * (rh + pad) + (rh - size(t)[1]) // 2), t, fill=(0, 0, 0), font=font
+        )
+    return np.asarray(im)
 
 
-def _poses_for(world: World, capture: Path, state: str) -> np.ndarray:
-    if state in world.poses:
+def _poses_for(
+    world: World, capture: Path, state: str, alignment: FrameAlignment | None = None
+) -> np.ndarray:
+    """The world-frame object poses at ``state``: the world's own when it holds the state and shares the
+    capture's frame, else the capture's; through ``alignment``, the capture's motion from the world's
+    reference state moved into the world's frame (:meth:`FrameAlignment.poses`)."""
+    if state in world.poses and (alignment is None or alignment.identity):
         return world.poses[state]
     cap = load_capture(capture, states=[], load_depth=False)
     if state not in cap.poses:
         raise ValueError(f"{capture}: state {state!r} has no object poses in scene.json")
     if cap.object_ids != world.object_ids:
         raise ValueError(f"{capture}: objects {cap.object_ids} differ from the world's {world.object_ids}")
-    return np.asarray(cap.poses[state], dtype=np.float64)
+    truth = np.asarray(cap.poses[state], dtype=np.float64)
+    if alignment is None:
+        return truth
+    ref = world.metadata.get("reference_state", next(iter(world.poses), None))
+    if ref not in world.poses or ref not in cap.poses:
+        raise ValueError(f"{capture}: no object poses of the world's reference state {ref!r} to align with")
+    if alignment.identity and np.array_equal(cap.poses[ref], world.poses[ref]):
+        return truth  # one frame, the same object frames
+    return alignment.poses(truth, cap.poses[ref], world.poses[ref])
 
 
 def evaluate(
@@ -150,8 +202,11 @@ def evaluate(
     *,
     state: str | None = None,
     max_grid_rows: int = 8,
+    alignment: FrameAlignment | None = None,
 ) -> dict[str, Any]:
-    """Evaluate and write the report files; returns the report dictionary."""
+    """Evaluate and write the report files; returns the report dictionary. ``alignment``: ``capture`` is a
+    ground truth in another frame (:mod:`.frames`): all views of ``state`` are scored, its cameras and object
+    poses moved into the world's frame, and the report records the similarity under ``"frame_alignment"``."""
     world = load_world(world_path)
     meta = world.metadata
     src = meta.get("source", {})
@@ -166,10 +221,11 @@ def evaluate(
         downscale=int(src.get("downscale", 1)),
         background=bg,
         object_ids=world.object_ids,
-        all_views=state is not None and state != trained_state,
+        all_views=alignment is not None or (state is not None and state != trained_state),
     )
     if (
-        src.get("kind") == "capture"
+        alignment is None
+        and src.get("kind") == "capture"
         and views.width * views.height
         and (views.width, views.height) != tuple(meta.get("image_size", (views.width, views.height)))
     ):
@@ -177,16 +233,17 @@ def evaluate(
             f"{capture}: views are {views.width}x{views.height}, the world was trained at "
             f"{meta.get('image_size')}"
         )
-    poses = _poses_for(world, Path(capture), eval_state) if world.num_objects else None
+    poses = _poses_for(world, Path(capture), eval_state, alignment) if world.num_objects else None
     g = world.gaussians(poses=poses) if poses is not None else world.gaussians(state=trained_state)
+    viewmats = views.viewmats.numpy() if alignment is None else alignment.viewmats(views.viewmats.numpy())
     rgb, feats = render_gaussians(
-        g, views.viewmats.numpy(), views.Ks.numpy(), views.width, views.height, bg, world.splat_options
+        g, viewmats, views.Ks.numpy(), views.width, views.height, bg, world.splat_options
     )
     pred_cls = world.classify(feats).argmax(-1) if world.num_objects else None
     gt_imgs = views.images.numpy()
     gt_cls = None if views.classes is None else views.classes.numpy()
     k = world.num_objects
-    per_view, rows = [], []
+    per_view, rows, row_labels = [], [], []
     inter = np.zeros(k + 1)
     union = np.zeros(k + 1)
     for i in range(len(gt_imgs)):
@@ -214,6 +271,7 @@ def evaluate(
         per_view.append(entry)
         if len(rows) < max_grid_rows:
             rows.append(row)
+            row_labels.append(f"{eval_state}\nview {views.indices[i]}")
     obj_iou = (
         {
             world.object_names[c - 1]: (float(inter[c] / union[c]) if union[c] > 0 else None)
@@ -238,11 +296,14 @@ def evaluate(
             "mask_iou": float(np.mean(valid)) if valid else None,
         },
     }
+    if alignment is not None:
+        report["frame_alignment"] = alignment.to_dict()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "report.json", report)
     atomic_write_bytes(out / "report.md", _markdown(report).encode("utf-8"))
-    atomic_write_bytes(out / "grid.png", encode_png(_grid(rows)))
+    cols = ["ground truth", "ours", "error"] + (["GT mask", "our mask"] if len(rows[0]) > 3 else [])
+    atomic_write_bytes(out / "grid.png", encode_png(_grid(rows, cols, row_labels)))
     return report
 
 
@@ -262,18 +323,24 @@ def mean_of_means(means: list[Mapping[str, float | None]]) -> dict[str, float | 
     return out
 
 
-def evaluate_test_states(world_path: str | Path, capture: str | Path, out_dir: str | Path) -> dict[str, Any]:
+def evaluate_test_states(
+    world_path: str | Path,
+    capture: str | Path,
+    out_dir: str | Path,
+    *,
+    alignment: FrameAlignment | None = None,
+) -> dict[str, Any]:
     """:func:`evaluate` at every test state of ``capture`` (into ``out_dir/<state>/``), then
     ``out_dir/report.json`` and ``report.md``: each state's view count and mean, and ``"mean"``, the mean over
-    the states of their means (a metric missing in a state is left out of its mean). ValueError when the
-    capture has no test states."""
+    the states of their means (a metric missing in a state is left out of its mean). ``alignment``: as for
+    :func:`evaluate`. ValueError when the capture has no test states."""
     states = capture_test_states(capture)
     if not states:
         raise ValueError(f"{capture}: the capture has no test states to evaluate at")
     out = Path(out_dir)
     per_state = {}
     for s in states:
-        r = evaluate(world_path, capture, out / s, state=s)
+        r = evaluate(world_path, capture, out / s, state=s, alignment=alignment)
         per_state[s] = {"views": r["views"], "mean": r["mean"]}
     mean = mean_of_means([v["mean"] for v in per_state.values()])
     report = {
@@ -284,6 +351,8 @@ def evaluate_test_states(world_path: str | Path, capture: str | Path, out_dir: s
         "states": per_state,
         "mean": mean,
     }
+    if alignment is not None:
+        report["frame_alignment"] = alignment.to_dict()
     lines = [
         f"# Evaluation of `{Path(world_path).name}` at the test states",
         "",

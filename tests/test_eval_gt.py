@@ -1,0 +1,192 @@
+"""Evaluating a world against a ground truth in another frame: the similarity fitted from the cameras, the
+cameras and object poses moved through it, the same scores as in one frame, and the identity case giving
+exactly the evaluation without alignment."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _captures import tiny_capture
+
+from dsg_gym.world import load_world
+from train_world.cli import train as train_cli
+from train_world.cli.eval import main as eval_main
+from train_world.eval.evaluate import evaluate_test_states
+from train_world.eval.frames import FrameAlignment, fit_frame_alignment, fit_similarity, needs_alignment
+
+
+def _rot(axis, deg):
+    a = math.radians(deg)
+    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(a) * k + (1 - math.cos(a)) * k @ k
+
+
+# the similarity applied to the capture (truth -> transformed truth): scale 0.5, 30 degrees, a shift
+SCALE, ROT, SHIFT = 0.5, _rot([0.2, -0.4, 1.0], 30.0), np.array([0.3, -0.1, 0.25])
+
+
+def _similar(x: np.ndarray) -> np.ndarray:
+    return SCALE * x @ ROT.T + SHIFT
+
+
+# ----------------------------------------------------------------------------------- the fit
+def test_fit_recovers_a_similarity_from_cameras_and_refuses_degenerate_ones():
+    rng = np.random.default_rng(0)
+    c = rng.normal(size=(12, 3))
+    r = np.stack([_rot(rng.normal(size=3), rng.uniform(0, 180)) for _ in range(12)])
+    s, R, t = fit_similarity(c, r, _similar(c), ROT @ r)
+    assert s == pytest.approx(SCALE, rel=1e-12) and np.allclose(R, ROT, atol=1e-12)
+    assert np.allclose(t, SHIFT, atol=1e-12)
+    with pytest.raises(ValueError, match="at least 3"):
+        fit_similarity(c[:2], r[:2], c[:2], r[:2])
+    line = np.outer(np.arange(5.0), [1.0, 2.0, 0.5])
+    with pytest.raises(ValueError, match="collinear"):
+        fit_similarity(line, r[:5], line, r[:5])
+
+
+def test_moved_cameras_see_moved_points_at_the_same_pixels():
+    al = FrameAlignment(SCALE, ROT, SHIFT, 3, 0.0, 0.0, 0.0, False)
+    rng = np.random.default_rng(1)
+    vm = np.tile(np.eye(4), (3, 1, 1))
+    for i in range(3):
+        vm[i, :3, :3] = _rot(rng.normal(size=3), 40.0 * i + 10)
+        vm[i, :3, 3] = [0.1 * i, -0.05, 2.0]
+    pts = rng.normal(scale=0.3, size=(20, 3))
+    moved = al.viewmats(vm)
+    assert np.allclose(moved[:, :3, :3] @ np.transpose(moved[:, :3, :3], (0, 2, 1)), np.eye(3), atol=1e-12)
+
+    def pixels(v, p):
+        x = p @ v[:3, :3].T + v[:3, 3]
+        return x[:, :2] / x[:, 2:], x[:, 2]
+
+    for i in range(3):
+        (a, za), (b, zb) = pixels(vm[i], pts), pixels(moved[i], _similar(pts))
+        assert np.allclose(a, b, atol=1e-12) and np.allclose(zb, SCALE * za, atol=1e-12)
+    # an object's motion in the truth's frame, carried into the world's, moves the object the same way
+    M = np.eye(4)
+    M[:3, :3] = _rot([0, 0, 1], 25)
+    M[:3, 3] = [0.1, -0.2, 0.0]
+    Mw = al.motions(M[None])[0]
+    assert np.allclose(_similar(pts @ M[:3, :3].T + M[:3, 3]), _similar(pts) @ Mw[:3, :3].T + Mw[:3, 3])
+
+
+# ----------------------------------------------------------------------------------- end to end
+def _transformed_capture(src: Path, dst: Path) -> Path:
+    """``src`` with every camera and object pose moved by the similarity (the images stay valid: a similarity of
+    the whole scene and its cameras leaves pinhole images unchanged)."""
+    shutil.copytree(src, dst)
+    scene = json.loads((dst / "scene.json").read_text())
+    for st in scene["states"].values():
+        for p in st["object_poses"]:
+            P = np.array(p["pose"])
+            P[:3, :3] = ROT @ P[:3, :3]
+            P[:3, 3] = _similar(P[:3, 3])
+            p["pose"] = P.tolist()
+    (dst / "scene.json").write_text(json.dumps(scene))
+    for tj in dst.glob("*/transforms.json"):
+        doc = json.loads(tj.read_text())
+        for fr in doc["frames"]:
+            m = np.array(fr["transform_matrix"])
+            m[:3, :3] = ROT @ m[:3, :3]
+            m[:3, 3] = _similar(m[:3, 3])
+            fr["transform_matrix"] = m.tolist()
+        tj.write_text(json.dumps(doc))
+    return dst
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval_gt")
+    cap = tiny_capture(root, test_views=3, test_states=2)
+    world = root / "w.dsgworld"
+    args = [str(cap), "--out", str(world), "--preset", "quick", "--iterations", "60", "--quiet"]
+    assert train_cli.main_two_state(args) == 0
+    return cap, world, _transformed_capture(cap, root / "moved")
+
+
+def test_scores_through_the_fitted_similarity_equal_those_in_one_frame(trained, tmp_path, capsys):
+    cap, world, moved = trained
+    assert load_world(world).metadata["camera_names"]["state1"][:2] == ["0000", "0001"]
+    plain = evaluate_test_states(world, cap, tmp_path / "plain")
+    assert eval_main([str(world), str(moved), "--out", str(tmp_path / "gt"), "--align-frames"]) == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    rep = json.loads((tmp_path / "gt" / "report.json").read_text())
+    al = rep["frame_alignment"]
+    assert al == {**printed["frame_alignment"], "rotation": al["rotation"], "identity": False}
+    # truth -> world is the inverse of the similarity applied to the capture
+    assert al["scale"] == pytest.approx(1 / SCALE, rel=1e-5)
+    assert al["rotation_deg"] == pytest.approx(30.0, abs=1e-4)
+    assert np.allclose(np.array(al["rotation"]), ROT.T, atol=1e-5)
+    assert np.allclose(al["translation"], -ROT.T @ SHIFT / SCALE, atol=1e-5)
+    assert al["camera_centre_rms"] < 1e-5 and al["camera_rotation_rms_deg"] < 0.02 and al["cameras"] == 32
+    assert list(rep["states"]) == list(plain["states"]) and rep["views"] == plain["views"] == 6
+    for s, v in plain["states"].items():
+        got = rep["states"][s]["mean"]
+        assert got["psnr"] == pytest.approx(v["mean"]["psnr"], abs=1e-4)
+        assert got["ssim"] == pytest.approx(v["mean"]["ssim"], abs=1e-5)
+        assert got["mask_iou"] == pytest.approx(v["mean"]["mask_iou"], abs=1e-2)
+    # without the similarity the moved truth scores far worse: the alignment is what made them equal
+    assert eval_main([str(world), str(moved), "--out", str(tmp_path / "raw"), "--same-frame"]) == 0
+    raw = json.loads((tmp_path / "raw" / "report.json").read_text())
+    assert raw["mean"]["mask_iou"] < plain["mean"]["mask_iou"] - 0.3 and "frame_alignment" not in raw
+    assert raw["mean"]["psnr"] < plain["mean"]["psnr"] and raw["mean"]["ssim"] < plain["mean"]["ssim"]
+
+
+def test_one_frame_gives_exactly_the_evaluation_without_alignment(trained, tmp_path):
+    cap, world, _ = trained
+    plain = evaluate_test_states(world, cap, tmp_path / "plain")
+    w = load_world(world)
+    al = fit_frame_alignment(w, cap)
+    assert al.identity and al.scale == 1.0 and np.array_equal(al.rotation, np.eye(3))
+    aligned = evaluate_test_states(world, cap, tmp_path / "aligned", alignment=al)
+    assert aligned["mean"] == plain["mean"] and aligned["frame_alignment"]["identity"]
+    for s in plain["states"]:
+        a = json.loads((tmp_path / "aligned" / s / "report.json").read_text())
+        b = json.loads((tmp_path / "plain" / s / "report.json").read_text())
+        assert a["per_view"] == b["per_view"]
+    # a world without camera names is matched through the capture it was trained on
+    unnamed = dataclasses.replace(w, metadata={k: v for k, v in w.metadata.items() if k != "camera_names"})
+    assert fit_frame_alignment(unnamed, cap).identity
+
+
+def test_when_the_frames_are_aligned_and_when_cameras_do_not_match(trained, tmp_path, capsys):
+    cap, world, moved = trained
+    w = load_world(world)
+    assert not needs_alignment(w, moved)  # a synthetic world shares its capture's frame
+    src = dict(w.metadata["source"])
+    est = dataclasses.replace(
+        w, metadata={**w.metadata, "source": {**src, "generator": {"name": "dsg-capture", "version": "1.0"}}}
+    )
+    assert needs_alignment(est, moved) and not needs_alignment(est, src["path"])
+    renamed = dataclasses.replace(
+        w,
+        metadata={
+            **w.metadata,
+            "camera_names": {s: [f"x{n}" for n in v] for s, v in w.metadata["camera_names"].items()},
+        },
+    )
+    with pytest.raises(ValueError, match="only 0 of the world's cameras"):
+        fit_frame_alignment(renamed, moved)
+    # a ground truth in another frame without test states is refused unless a state is named
+    bare = tmp_path / "bare"
+    shutil.copytree(moved, bare)
+    scene = json.loads((bare / "scene.json").read_text())
+    scene["states"] = {k: v for k, v in scene["states"].items() if v.get("split") == "train"}
+    (bare / "scene.json").write_text(json.dumps(scene))
+    assert eval_main([str(world), str(bare), "--out", str(tmp_path / "e"), "--align-frames"]) == 2
+    assert "no test states" in capsys.readouterr().err
+    assert (
+        eval_main(
+            [str(world), str(bare), "--out", str(tmp_path / "e"), "--align-frames", "--state", "state2"]
+        )
+        == 0
+    )
+    rep = json.loads((tmp_path / "e" / "report.json").read_text())
+    assert rep["views"] == 16 and rep["frame_alignment"]["scale"] == pytest.approx(2.0, rel=1e-5)

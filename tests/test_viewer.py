@@ -19,8 +19,8 @@ import pytest
 from dsg_gym.export import load_poses_file
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.poses import matrix_to_pose7
+from dsg_gym.viewer.env_state import RANDOM, TABLE_NAME, ViewerSession
 from dsg_gym.viewer.images import depth_image, mask_image, panel_image
-from dsg_gym.viewer.session import RANDOM, TABLE_NAME, ViewerSession
 from dsg_gym.viewer.splats import viser_splats
 
 SIZE = 48

@@ -1,7 +1,7 @@
 """``dsg-view``: a world in the browser, with the ``DSGWorldEnv`` behind the page (docs/viewer.md).
 
 :class:`~dsg_gym.viewer.server.Viewer` serves the page (needs the ``viewer`` extra, viser);
-:class:`~dsg_gym.viewer.session.ViewerSession` is the env-side state it drives and works without viser.
+:class:`~dsg_gym.viewer.env_state.ViewerSession` is the env-side state it drives and works without viser.
 Importing this package imports neither viser nor the renderer."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING
 __all__ = ["Verdict", "Viewer", "ViewerSession"]
 
 if TYPE_CHECKING:
+    from .env_state import Verdict, ViewerSession
     from .server import Viewer
-    from .session import Verdict, ViewerSession
 
 
 def __getattr__(name: str):

@@ -2,7 +2,7 @@
 
 The page shows the world's Gaussians with viser's Gaussian splat renderer: the background as one node and each
 object as a node under a transform handle at its pose. Dragging a handle moves the object in the
-:class:`~dsg_gym.viewer.session.ViewerSession`'s ``DSGWorldEnv`` (one absolute-pose step); the panel shows that
+:class:`~dsg_gym.viewer.env_state.ViewerSession`'s ``DSGWorldEnv`` (one absolute-pose step); the panel shows that
 env's own observation (RGB, object ids, depth) from the chosen capture camera and the physics verdict, live.
 Its buttons reset to ``state1`` / ``state2`` / a random valid configuration, save the configuration (JSON) and
 export it as a USD stage, and load an episode file or a Minari dataset episode to play with a time slider.
@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from .env_state import RANDOM, Verdict, ViewerSession
 from .images import panel_image
-from .session import RANDOM, Verdict, ViewerSession
 from .splats import viser_splats
 
 __all__ = ["VIEWER_EXTRA_HINT", "Viewer", "import_viser"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -14,7 +15,9 @@ import numpy as np
 import pytest
 from _captures import tiny_capture
 
-from dsg_gym.world import load_world
+from dsg_gym.cameras import Cameras, look_at
+from dsg_gym.gaussians import GaussianSet
+from dsg_gym.world import World, load_world
 from train_world.cli import train as train_cli
 from train_world.cli.eval import main as eval_main
 from train_world.eval.evaluate import evaluate_test_states
@@ -75,6 +78,26 @@ def test_moved_cameras_see_moved_points_at_the_same_pixels():
     M[:3, 3] = [0.1, -0.2, 0.0]
     Mw = al.motions(M[None])[0]
     assert np.allclose(_similar(pts @ M[:3, :3].T + M[:3, 3]), _similar(pts) @ Mw[:3, :3].T + Mw[:3, 3])
+
+
+def test_a_ground_truth_whose_scene_json_is_no_scene_description_is_a_one_line_error(tmp_path):
+    vm = np.stack([look_at([0.6 * math.cos(a), 0.6 * math.sin(a), 0.4], [0.0, 0.0, 0.0]) for a in (0, 2, 4)])
+    K = np.tile(np.array([[50.0, 0.0, 16.0], [0.0, 50.0, 16.0], [0.0, 0.0, 1.0]]), (3, 1, 1))
+    world = World(
+        GaussianSet.empty(), {}, {}, {"state1": Cameras(vm, K, 32, 32)}, np.zeros((1, 1)), np.zeros(1)
+    )
+    scene = tmp_path / "scene.json"
+    for content, problem in (
+        ([], "expected a capture's scene description .* got an array"),
+        ("state1", "expected a capture's scene description .* got a string"),
+        ({"states": ["state1"]}, "'states' must be a JSON object .* got an array"),
+    ):
+        scene.write_text(json.dumps(content))
+        with pytest.raises(
+            ValueError, match=f"^{re.escape(str(scene))}: {problem}; give the ground-truth"
+        ) as e:
+            fit_frame_alignment(world, tmp_path)
+        assert "\n" not in str(e.value)
 
 
 # ----------------------------------------------------------------------------------- end to end

@@ -6,9 +6,11 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-__all__ = ["apply", "rotation_angle_deg", "similarity_matrix", "umeyama"]
+__all__ = ["apply", "precise_rotation_deg", "rotation_angle_deg", "similarity_matrix", "umeyama"]
 
 
 def umeyama(
@@ -52,3 +54,11 @@ def rotation_angle_deg(rot: np.ndarray) -> np.ndarray:
     r = np.asarray(rot, dtype=np.float64)
     c = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def precise_rotation_deg(rot: np.ndarray) -> float:
+    """Angle of one rotation ``rot [3,3]`` in degrees, accurate at small angles too (``atan2`` of its sine and
+    cosine, where :func:`rotation_angle_deg`'s arccos of the trace loses precision near 0)."""
+    r = np.asarray(rot, dtype=np.float64)
+    sin = 0.5 * math.hypot(r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1])
+    return math.degrees(math.atan2(sin, (float(np.trace(r)) - 1.0) / 2.0))

@@ -19,7 +19,6 @@ State 1 is the reference: its poses stay, the refined state-2 poses are ``T'_1->
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -33,6 +32,7 @@ from dsg_gym.geometry import (
     quat_to_rotmat,
     rotmat_to_quat,
 )
+from train_world.capture.alignment import precise_rotation_deg
 from train_world.dual_state.transfer import ObjectTransfer
 
 __all__ = [
@@ -58,13 +58,6 @@ def motion_lrs(
     return lr_translation * f, lr_rotation * f
 
 
-def _rotation_deg(R: np.ndarray) -> float:
-    """Angle of the rotation ``R`` in degrees, accurate at small angles (``atan2`` of its sine and cosine)."""
-    R = np.asarray(R, dtype=np.float64)
-    sin = 0.5 * math.hypot(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1])
-    return math.degrees(math.atan2(sin, (float(np.trace(R)) - 1.0) / 2.0))
-
-
 def motion_error(T: np.ndarray, T_ref: np.ndarray, P1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per object, the distance ``[K]`` between where ``T`` and ``T_ref`` put the object's state-1 origin
     (``P1[k][:3, 3]``), in scene units, and the angle ``[K]`` in degrees between their rotations."""
@@ -72,7 +65,7 @@ def motion_error(T: np.ndarray, T_ref: np.ndarray, P1: np.ndarray) -> tuple[np.n
     o = P1[:, :3, 3]
     a = np.einsum("kij,kj->ki", T[:, :3, :3], o) + T[:, :3, 3]
     b = np.einsum("kij,kj->ki", T_ref[:, :3, :3], o) + T_ref[:, :3, 3]
-    ang = [_rotation_deg(T[k, :3, :3].T @ T_ref[k, :3, :3]) for k in range(len(T))]
+    ang = [precise_rotation_deg(T[k, :3, :3].T @ T_ref[k, :3, :3]) for k in range(len(T))]
     return np.linalg.norm(a - b, axis=1), np.asarray(ang, dtype=np.float64)
 
 

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from dsg_gym.world import World
+from train_world.capture.alignment import precise_rotation_deg
 from train_world.capture.cameras import GL_TO_CV, check_rigid
 from train_world.capture.files import CaptureError, read_json
 from train_world.dual_state.views import ESTIMATING_GENERATORS, view_names
@@ -48,13 +49,6 @@ __all__ = [
 #: a fit whose scale, rotation (radians) and translation (relative to the cameras' spread) are all within this
 #: of the identity's is the identity
 IDENTITY_TOLERANCE = 1e-5
-
-
-def _rotation_deg(R: np.ndarray) -> float:
-    """Angle of the rotation ``R`` in degrees, accurate at small angles (``atan2`` of its sine and cosine)."""
-    R = np.asarray(R, dtype=np.float64)
-    sin = 0.5 * math.hypot(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1])
-    return math.degrees(math.atan2(sin, (float(np.trace(R)) - 1.0) / 2.0))
 
 
 def _project_rotation(H: np.ndarray) -> np.ndarray:
@@ -143,7 +137,7 @@ class FrameAlignment:
     def to_dict(self) -> dict[str, Any]:
         return {
             "scale": self.scale,
-            "rotation_deg": _rotation_deg(self.rotation),
+            "rotation_deg": precise_rotation_deg(self.rotation),
             "rotation": self.rotation.tolist(),
             "translation": self.translation.tolist(),
             "cameras": self.cameras,
@@ -191,13 +185,36 @@ def world_camera_names(world: World) -> dict[str, list[str] | None]:
     return out
 
 
+_JSON_KINDS = {dict: "an object", list: "an array", str: "a string", bool: "true/false", type(None): "null"}
+
+
+def _truth_states(truth: Path) -> Mapping[str, Any]:
+    """The ``states`` of the ground truth's ``scene.json`` (none when it lists none); CaptureError naming the
+    file when it is not a capture's scene description."""
+    src = truth / "scene.json"
+    meta = read_json(src)
+    fix = "give the ground-truth capture folder (dsg-synth --as-photos writes it to ground_truth/)"
+    if not isinstance(meta, dict):
+        kind = _JSON_KINDS.get(type(meta), "a number")
+        raise CaptureError(
+            f"{src}: expected a capture's scene description (a JSON object with 'states'), got {kind}; {fix}"
+        )
+    states = meta.get("states", {})
+    if not isinstance(states, dict):
+        kind = _JSON_KINDS.get(type(states), "a number")
+        raise CaptureError(
+            f"{src}: 'states' must be a JSON object mapping state names to their views, got {kind}; {fix}"
+        )
+    return states
+
+
 def fit_frame_alignment(world: World, truth: str | Path) -> FrameAlignment:
     """The similarity from the ground-truth capture folder ``truth`` into ``world``'s frame, fitted on the
     cameras of the states both hold (module docstring); ValueError naming the problem when fewer than 3 cameras
-    match."""
+    match or ``truth/scene.json`` is not a capture's scene description."""
     names = world_camera_names(world)
     truth = Path(truth)
-    splits = read_json(truth / "scene.json").get("states", {})
+    splits = _truth_states(truth)
     cg, rg, cw, rw = [], [], [], []
     for s, cams in world.cameras.items():
         if s not in splits:
@@ -227,11 +244,11 @@ def fit_frame_alignment(world: World, truth: str | Path) -> FrameAlignment:
     cg, rg, cw, rw = (np.asarray(x) for x in (cg, rg, cw, rw))
     s, R, t = fit_similarity(cg, rg, cw, rw)
     err = np.linalg.norm(cg @ (s * R).T + t - cw, axis=1) / s
-    rot_err = np.array([_rotation_deg(rw[i].T @ R @ rg[i]) for i in range(len(rg))])
+    rot_err = np.array([precise_rotation_deg(rw[i].T @ R @ rg[i]) for i in range(len(rg))])
     spread = math.sqrt(float(((cg - cg.mean(0)) ** 2).sum()) / len(cg))
     identity = (
         abs(s - 1.0) <= IDENTITY_TOLERANCE
-        and math.radians(_rotation_deg(R)) <= IDENTITY_TOLERANCE
+        and math.radians(precise_rotation_deg(R)) <= IDENTITY_TOLERANCE
         and float(np.linalg.norm(t)) <= IDENTITY_TOLERANCE * max(spread, 1e-12)
     )
     if identity:

@@ -143,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--checkpoint", type=Path, help="its joint-start checkpoint (benchmarks.train_step --checkpoint)"
     )
+    p.add_argument("--seed", type=int, default=0, help="the training's seed (benchmarks.train_step --seed)")
     p.add_argument("--steps", type=int, default=30, help="timed steps per phase and process (default 30)")
     p.add_argument(
         "--rounds", type=int, default=2, help="rounds of every thread count and setting (default 2)"
@@ -174,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--steps and --rounds must be >= 1")
     if args.checkpoint is not None and args.capture is None:
         p.error("--checkpoint needs --capture (the capture the checkpoint was trained on)")
-    bench = ["--steps", str(args.steps)]
+    bench = ["--steps", str(args.steps), "--seed", str(args.seed)]
     bench += ["--quick"] if args.quick else []
     bench += ["--capture", str(args.capture)] if args.capture else []
     bench += ["--checkpoint", str(args.checkpoint)] if args.checkpoint else []

@@ -96,6 +96,7 @@ def run(
     profile: bool,
     capture: Path | None = None,
     iterations: int | None = None,
+    seed: int = 0,
 ) -> dict[str, Any]:
     import numba
     import torch
@@ -119,6 +120,8 @@ def run(
             "--preset",
             "quick" if quick else "default",
             *([] if iterations is None else ["--iterations", str(iterations)]),
+            "--seed",
+            str(seed),
         ]
         cfg = config_from_args(dual_parser().parse_args(args))
         trainer = DualTrainer(capture, cfg)
@@ -196,6 +199,12 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         help="the training's step count, as dsg-train's (must match the checkpoint's; default: the preset's)",
     )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="the training's seed, as dsg-train's (must match the checkpoint's)",
+    )
     p.add_argument("--steps", type=int, default=40, help="timed steps per phase (default 40)")
     p.add_argument("--warmup", type=int, default=5, help="untimed steps before each phase (default 5)")
     p.add_argument("--profile", action="store_true", help="also profile the joint steps (cProfile)")
@@ -216,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         profile=args.profile,
         capture=args.capture,
         iterations=args.iterations,
+        seed=args.seed,
     )
     print(json.dumps({k: r[k] for k in ("recon", "joint", "joint_over_recon")}))
     return 0

@@ -78,8 +78,21 @@ def test_report_of_heldout_views(trained):
     assert -1 <= r["mean"]["ssim"] <= 1 and 0 <= r["mean"]["mask_iou"] <= 1
     assert r["mean"]["psnr"] == pytest.approx(np.mean([v["psnr"] for v in r["per_view"]]))
     assert set(r["object_iou"]) == {"yellow_box", "green_ball", "purple_capsule"}
+    regions = r["error_by_region"]["regions"]
+    assert set(regions) == {"outline", "objects", "background", "unseen"}
+    # held-out views of the training state: the training views saw most of their background
+    assert r["error_by_region"]["coverage_views"] == r["views"] == 3
+    assert regions["unseen"]["pixel_share"] < regions["background"]["pixel_share"]
+    assert sum(e["pixel_share"] for e in regions.values()) == pytest.approx(1.0)
+    assert sum(e["error_share"] for e in regions.values()) == pytest.approx(1.0)
+    # the regions' squared errors add up to the views' mean squared errors
+    mse = np.mean([10 ** (-v["psnr"] / 10) for v in r["per_view"]])
+    total = sum(e["squared_error"] for e in regions.values()) / sum(e["pixels"] for e in regions.values())
+    assert total == pytest.approx(mse, rel=1e-9)
+    assert set(r["error_by_region"]["per_object"]) == set(r["object_iou"])
     md = (out / "report.md").read_text()
     assert "| **mean** |" in md and md.count("\n| state1/") == 3
+    assert "| outline |" in md and "| object yellow_box |" in md
     grid = Image.open(out / "grid.png")
     # 3 rows of (GT | ours | error | GT mask | our mask), 32 px tiles with 2 px borders, and the labels
     # (column names above, state and view left of each row) take room beyond the tiles

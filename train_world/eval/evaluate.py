@@ -52,6 +52,7 @@ from train_world.capture import load_capture
 from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
 from train_world.eval.frames import FrameAlignment
 from train_world.eval.metrics import mask_iou, psnr, ssim
+from train_world.eval.regions import RegionErrors, capture_coverage, combine
 from train_world.single_state.data import load_eval_views
 
 __all__ = [
@@ -246,6 +247,14 @@ def evaluate(
     per_view, rows, row_labels = [], [], []
     inter = np.zeros(k + 1)
     union = np.zeros(k + 1)
+    regions = RegionErrors(world.object_names) if gt_cls is not None else None
+    seen = None
+    trained = meta.get("training_states") or ([trained_state] if isinstance(trained_state, str) else [])
+    if regions is not None and trained and src.get("kind") == "capture":
+        held = meta.get("heldout_views_by_state") or {trained[0]: meta.get("heldout_views", ())}
+        held = held if isinstance(held, Mapping) else {}
+        downscale = int(src.get("downscale", 1))
+        seen = capture_coverage(capture, eval_state, views.indices, trained, held, downscale)
     for i in range(len(gt_imgs)):
         ours = np.clip(rgb[i], 0, 1)
         entry: dict[str, Any] = {
@@ -259,6 +268,8 @@ def evaluate(
             _u8(ours),
             _u8(np.abs(ours - gt_imgs[i]).mean(-1, keepdims=True).repeat(3, -1) * 4),
         ]
+        if regions is not None:
+            regions.add(ours, gt_imgs[i], gt_cls[i], None if seen is None else seen[i])
         if pred_cls is not None and gt_cls is not None:
             ious = mask_iou(pred_cls[i], gt_cls[i], range(1, k + 1))
             entry["mask_iou"] = {world.object_names[c - 1]: v for c, v in ious.items()}
@@ -296,6 +307,8 @@ def evaluate(
             "mask_iou": float(np.mean(valid)) if valid else None,
         },
     }
+    if regions is not None:
+        report["error_by_region"] = regions.report()
     if alignment is not None:
         report["frame_alignment"] = alignment.to_dict()
     out = Path(out_dir)
@@ -342,6 +355,8 @@ def evaluate_test_states(
     for s in states:
         r = evaluate(world_path, capture, out / s, state=s, alignment=alignment)
         per_state[s] = {"views": r["views"], "mean": r["mean"]}
+        if "error_by_region" in r:
+            per_state[s]["error_by_region"] = r["error_by_region"]
     mean = mean_of_means([v["mean"] for v in per_state.values()])
     report = {
         "world": str(world_path),
@@ -351,6 +366,9 @@ def evaluate_test_states(
         "states": per_state,
         "mean": mean,
     }
+    by_region = [v["error_by_region"] for v in per_state.values() if "error_by_region" in v]
+    if by_region and len(by_region) == len(per_state):
+        report["error_by_region"] = combine(by_region)
     if alignment is not None:
         report["frame_alignment"] = alignment.to_dict()
     lines = [
@@ -368,6 +386,7 @@ def evaluate_test_states(
         f"| **mean** | {report['views']} | **{_fmt(mean['psnr'])}** | **{_fmt(mean['ssim'])}** | "
         f"**{_fmt(mean['mask_iou'])}** |"
     )
+    lines += _region_lines(report.get("error_by_region"))
     atomic_write_json(out / "report.json", report)
     atomic_write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode("utf-8"))
     return report
@@ -395,7 +414,27 @@ def _markdown(r: dict[str, Any]) -> str:
     if r["object_iou"]:
         lines += ["", "| object | IoU |", "| --- | --- |"]
         lines += [f"| {k} | {_fmt(v)} |" for k, v in r["object_iou"].items()]
+    lines += _region_lines(r.get("error_by_region"))
     return "\n".join(lines) + "\n"
+
+
+def _region_lines(by_region: dict[str, Any] | None) -> list[str]:
+    """Markdown table of :mod:`.regions`' error breakdown (nothing without one)."""
+    if not by_region:
+        return []
+    lines = [
+        "",
+        f"Error by region (outline: within {by_region['outline_radius']} px of an id change):",
+        "",
+        "| region | pixels | PSNR (dB) | share of the squared error |",
+        "| --- | --- | --- | --- |",
+    ]
+    rows = [*by_region["regions"].items(), *((f"object {n}", e) for n, e in by_region["per_object"].items())]
+    for name, e in rows:
+        share = "-" if e["pixel_share"] is None else f"{100 * e['pixel_share']:.1f} %"
+        err = "-" if e["error_share"] is None else f"{100 * e['error_share']:.1f} %"
+        lines.append(f"| {name} | {share} | {_fmt(e['psnr'])} | {err} |")
+    return lines
 
 
 def default_state(world_path: str | Path, capture: str | Path) -> str | None:

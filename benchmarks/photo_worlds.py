@@ -1,0 +1,188 @@
+"""Worlds made from photos against worlds made from the true cameras: test-state PSNR and photos -> world time.
+
+    python -m benchmarks.photo_worlds [--scenes all] [--seed 0] [--work DIR] [--out FILE]
+    python -m benchmarks.photo_worlds --scenes four_mixed --views 24 --preset quick --iterations 200  # a quick look
+
+Per scene, each step a fresh process, in ``--work`` (kept) or a temporary folder:
+
+1. ``dsg-synth --scene S --as-photos [--marker M]``: photos, and the true capture under ``ground_truth/``;
+2. ``dsg-capture photos --out est [--marker-size M]``: camera poses, table frame and object motions from the
+   images alone (timed);
+3. ``dsg-train est``: the world from the photos (timed, with its peak RSS);
+4. ``dsg-train photos/ground_truth``: the reference, the same training on the true cameras and poses;
+5. ``dsg-eval`` of both worlds at the ground truth's test states (the photo world with ``--align-frames``).
+
+Writes ``{config, scenes: {S: {capture_s, train_s, photos_to_world_min, peak_rss_gib, photo: {psnr, ssim,
+mask_iou}, reference: {...}, gap_db}}, summary: {mean_gap_db, worst_gap_db, slowest_min, mean_photo_psnr,
+mean_reference_psnr}, targets}``. ``gap_db`` is the reference's PSNR minus the photo world's. Times depend on
+the machine and its load: run it on an idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from ._results import default_out
+
+TARGET_GAP_DB = 0.5
+TARGET_MINUTES = 20.0
+
+
+def _run(cmd: list[str], log: Path) -> tuple[float, int]:
+    """Run ``cmd`` (its output to ``log``); returns (wall seconds, peak RSS in bytes) or raises naming the step."""
+    t0 = time.perf_counter()
+    with open(log, "wb") as f:
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        tail = log.read_text(errors="replace")[-1500:]
+        raise RuntimeError(f"{' '.join(cmd[:2])} failed (exit {proc.returncode}), see {log}:\n{tail}")
+    return wall, int(usage.ru_maxrss) * 1024
+
+
+def _cli(name: str) -> list[str]:
+    return [sys.executable, "-c", f"import sys; from {name} import main; sys.exit(main())"]
+
+
+SYNTH, CAPTURE, TRAIN, EVAL = (
+    _cli(m)
+    for m in (
+        "train_world.cli.synth",
+        "train_world.cli.capture",
+        "train_world.cli.train",
+        "train_world.cli.eval",
+    )
+)
+
+
+def _metrics(report: Path) -> dict[str, float | None]:
+    m = json.loads(report.read_text())["mean"]
+    return {k: m.get(k) for k in ("psnr", "ssim", "mask_iou")}
+
+
+def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], marker: float | None) -> dict:
+    """Every step for one scene under ``work/name``; returns the scene's figures."""
+    d = work / name
+    d.mkdir(parents=True, exist_ok=True)
+    photos, est = d / "photos", d / "est"
+    mk = ["--marker", str(marker)] if marker else []
+    _run([*SYNTH, "--scene", name, "--as-photos", "--out", str(photos), "--overwrite", "--quiet", *mk, *synth_args],
+         d / "synth.log")  # fmt: skip
+    cap_s, _ = _run([*CAPTURE, str(photos), "--out", str(est), *(["--marker-size", str(marker)] if marker else [])],
+                    d / "capture.log")  # fmt: skip
+    train_s, rss = _run(
+        [*TRAIN, str(est), "--out", str(d / "photo.dsgworld"), "--quiet", *train_args], d / "train.log"
+    )
+    ref_s, ref_rss = _run(
+        [
+            *TRAIN,
+            str(photos / "ground_truth"),
+            "--out",
+            str(d / "reference.dsgworld"),
+            "--quiet",
+            *train_args,
+        ],
+        d / "train_reference.log",
+    )
+    truth = photos / "ground_truth"
+    _run([*EVAL, str(d / "photo.dsgworld"), str(truth), "--align-frames", "--out", str(d / "eval_photo")],
+         d / "eval_photo.log")  # fmt: skip
+    _run(
+        [*EVAL, str(d / "reference.dsgworld"), str(truth), "--out", str(d / "eval_reference")],
+        d / "eval_ref.log",
+    )
+    photo, ref = _metrics(d / "eval_photo" / "report.json"), _metrics(d / "eval_reference" / "report.json")
+    report = json.loads((est / "report.json").read_text()) if (est / "report.json").is_file() else {}
+    return {
+        "capture_s": round(cap_s, 1),
+        "train_s": round(train_s, 1),
+        "photos_to_world_min": round((cap_s + train_s) / 60.0, 2),
+        "peak_rss_gib": round(rss / 2**30, 3),
+        "reference_train_s": round(ref_s, 1),
+        "reference_peak_rss_gib": round(ref_rss / 2**30, 3),
+        "registered": {k: f"{v['views']}/{v['of']}" for k, v in report.get("registered", {}).items()},
+        "photo": photo,
+        "reference": ref,
+        "gap_db": round(ref["psnr"] - photo["psnr"], 3),
+    }
+
+
+def run(out: Path, scenes: list[str], work: Path | None, synth_args: list[str], train_args: list[str],
+        marker: float | None) -> dict[str, Any]:  # fmt: skip
+    results: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(work) if work is not None else Path(tmp)
+        for s in scenes:
+            results[s] = scene(s, root, synth_args, train_args, marker)
+    gaps = [r["gap_db"] for r in results.values()]
+    result = {
+        "config": {"scenes": scenes, "synth_args": synth_args, "train_args": train_args, "marker_m": marker,
+                   "cpus": os.cpu_count()},
+        "scenes": results,
+        "summary": {
+            "mean_gap_db": round(sum(gaps) / len(gaps), 3),
+            "worst_gap_db": max(gaps),
+            "slowest_min": max(r["photos_to_world_min"] for r in results.values()),
+            "mean_photo_psnr": round(sum(r["photo"]["psnr"] for r in results.values()) / len(results), 3),
+            "mean_reference_psnr": round(sum(r["reference"]["psnr"] for r in results.values()) / len(results), 3),
+        },
+        "targets": {"gap_db": TARGET_GAP_DB, "photos_to_world_min": TARGET_MINUTES},
+    }  # fmt: skip
+    from train_world.capture.format import atomic_write_json
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out, result)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    from train_world.synth.spec import default_scene_names
+
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.photo_worlds",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="JSON to write (default: benchmarks/results/photo_worlds/<date>-<commit>.json)",
+    )
+    p.add_argument("--scenes", default="all", help="comma-separated dsg-synth scenes or 'all' (default)")
+    p.add_argument("--work", type=Path, help="keep every scene's photos, captures, worlds and logs here")
+    p.add_argument("--seed", type=int, default=0, help="dsg-synth and dsg-train seed (default 0)")
+    p.add_argument("--views", type=int, help="photos per state (default: dsg-synth's)")
+    p.add_argument(
+        "--marker", type=float, default=0.1, help="ArUco marker side in metres for scale (0: none)"
+    )
+    p.add_argument("--preset", default=None, help="dsg-train preset (default: dsg-train's)")
+    p.add_argument("--iterations", type=int, help="dsg-train steps (default: the preset's)")
+    args = p.parse_args(argv)
+    known = list(default_scene_names())
+    scenes = known if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
+    unknown = [s for s in scenes if s not in known]
+    if not scenes or unknown:
+        p.error(f"--scenes: unknown scene(s) {unknown or args.scenes!r}; choose from {', '.join(known)}")
+    if args.marker < 0 or (args.views is not None and args.views < 1):
+        p.error("--marker must be >= 0 and --views >= 1")
+    synth = ["--seed", str(args.seed)] + (["--views", str(args.views)] if args.views else [])
+    train = ["--seed", str(args.seed)] + (["--preset", args.preset] if args.preset else [])
+    train += ["--iterations", str(args.iterations)] if args.iterations else []
+    out = args.out or default_out("photo_worlds")
+    r = run(out, scenes, args.work, synth, train, args.marker or None)
+    print(json.dumps(r["summary"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

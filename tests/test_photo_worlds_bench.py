@@ -1,0 +1,45 @@
+"""benchmarks.photo_worlds: a world from photos against one from the true cameras, on a small quick run."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from benchmarks.photo_worlds import main
+
+
+def test_photo_worlds_quick(tmp_path):
+    out = tmp_path / "pw.json"
+    args = [
+        "--out",
+        str(out),
+        "--scenes",
+        "four_mixed",
+        "--views",
+        "24",
+        "--preset",
+        "quick",
+        "--iterations",
+        "60",
+    ]
+    assert main([*args, "--work", str(tmp_path / "work")]) == 0
+    r = json.loads(out.read_text())
+    s = r["scenes"]["four_mixed"]
+    assert s["registered"] == {"state1": "24/24", "state2": "24/24"}
+    for k in ("photo", "reference"):
+        assert math.isfinite(s[k]["psnr"]) and 5 < s[k]["psnr"] < 60 and 0 <= s[k]["mask_iou"] <= 1
+    assert s["gap_db"] == pytest.approx(s["reference"]["psnr"] - s["photo"]["psnr"], abs=1e-3)
+    assert s["photos_to_world_min"] == pytest.approx((s["capture_s"] + s["train_s"]) / 60, abs=0.01)
+    assert s["peak_rss_gib"] > 0.05
+    assert r["summary"]["worst_gap_db"] == s["gap_db"] and r["targets"]["gap_db"] == 0.5
+    report = json.loads((tmp_path / "work" / "four_mixed" / "eval_photo" / "report.json").read_text())
+    assert "frame_alignment" in report  # the photo world was scored in the ground truth's frame
+
+
+def test_photo_worlds_refuses_unknown_scenes(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--out", str(tmp_path / "x.json"), "--scenes", "kitchen"])
+    assert e.value.code == 2 and "unknown scene" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()

@@ -142,4 +142,11 @@ def test_unseen_background_is_its_own_region():
     r = acc.report()
     assert r["regions"]["unseen"]["error_share"] == pytest.approx(1.0)
     assert r["views"] == 2 and r["coverage_views"] == 1
+    assert r["mean_psnr_seen"] == float("inf")  # the covered view is perfect but for its unseen rows
+    acc2 = RegionErrors(["box", "can"])
+    ours[5:7] = 0.1  # error on seen pixels too
+    acc2.add(ours, truth, cls, seen)
+    want = psnr_from_mse(float(np.mean(((ours - truth) ** 2).mean(-1)[~m["unseen"]])))
+    assert acc2.report()["mean_psnr_seen"] == pytest.approx(want)
+    assert combine([acc2.report(), acc2.report()])["mean_psnr_seen"] == pytest.approx(want)
     assert r["regions"]["unseen"]["pixels"] == 3 * cls.shape[1]

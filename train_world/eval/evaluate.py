@@ -422,6 +422,7 @@ def _region_lines(by_region: dict[str, Any] | None) -> list[str]:
     """Markdown table of :mod:`.regions`' error breakdown (nothing without one)."""
     if not by_region:
         return []
+    seen = by_region.get("mean_psnr_seen")
     lines = [
         "",
         f"Error by region (outline: within {by_region['outline_radius']} px of an id change):",
@@ -434,6 +435,8 @@ def _region_lines(by_region: dict[str, Any] | None) -> list[str]:
         share = "-" if e["pixel_share"] is None else f"{100 * e['pixel_share']:.1f} %"
         err = "-" if e["error_share"] is None else f"{100 * e['error_share']:.1f} %"
         lines.append(f"| {name} | {share} | {_fmt(e['psnr'])} | {err} |")
+    if seen is not None:
+        lines += ["", f"Mean PSNR of the views without their unseen pixels: {_fmt(seen)} dB."]
     return lines
 
 

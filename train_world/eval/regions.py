@@ -156,6 +156,7 @@ class RegionErrors:
         self.sq = dict.fromkeys(keys, 0.0)
         self.views = 0
         self.coverage_views = 0  # views whose unseen pixels were told apart
+        self.seen_psnr_sum = 0.0  # over those views: PSNR of the pixels but the unseen ones
 
     def add(
         self, ours: np.ndarray, truth: np.ndarray, classes: np.ndarray, seen: np.ndarray | None = None
@@ -170,6 +171,8 @@ class RegionErrors:
         masks = region_masks(classes, self.radius, seen)
         self.coverage_views += seen is not None
         self.views += 1
+        if seen is not None:
+            self.seen_psnr_sum += psnr_from_mse(float(err[~masks["unseen"]].mean()))
         for r in REGIONS:
             self.pixels[r] += int(masks[r].sum())
             self.sq[r] += float(err[masks[r]].sum())
@@ -181,7 +184,9 @@ class RegionErrors:
     def report(self) -> dict[str, Any]:
         """``{"outline_radius", "regions": {region: entry}, "per_object": {name: entry}}``; an entry holds
         ``pixels``, ``squared_error`` (the sums), ``pixel_share``, ``psnr`` (None without pixels) and
-        ``error_share`` (an object's shares are of the whole image)."""
+        ``error_share`` (an object's shares are of the whole image). ``mean_psnr_seen``: over the views with
+        coverage, the mean PSNR of each view without its unseen pixels (what the views' mean PSNR would be if
+        the world rendered unseen background perfectly), None without coverage."""
         total_px = sum(self.pixels[r] for r in REGIONS)
         total_sq = sum(self.sq[r] for r in REGIONS)
 
@@ -199,6 +204,7 @@ class RegionErrors:
             "outline_radius": self.radius,
             "views": self.views,
             "coverage_views": self.coverage_views,
+            "mean_psnr_seen": self.seen_psnr_sum / self.coverage_views if self.coverage_views else None,
             "regions": {r: entry(r) for r in REGIONS},
             "per_object": {n: entry(f"object:{n}") for n in self.names},
         }
@@ -218,6 +224,7 @@ def combine(reports: Sequence[dict[str, Any]]) -> dict[str, Any]:
     for r in reports:
         acc.views += int(r.get("views", 0))
         acc.coverage_views += int(r.get("coverage_views", 0))
+        acc.seen_psnr_sum += (r.get("mean_psnr_seen") or 0.0) * int(r.get("coverage_views", 0))
         for key, e in [*r["regions"].items(), *((f"object:{n}", e) for n, e in r["per_object"].items())]:
             acc.pixels[key] += int(e["pixels"])
             acc.sq[key] += float(e["squared_error"])

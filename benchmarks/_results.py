@@ -11,7 +11,7 @@ import datetime
 import subprocess
 from pathlib import Path
 
-__all__ = ["RESULTS", "default_out", "short_commit"]
+__all__ = ["RESULTS", "default_out", "short_commit", "write_result"]
 
 REPO = Path(__file__).resolve().parents[1]
 #: the folder of committed results, one subfolder per benchmark
@@ -49,3 +49,12 @@ def default_out(
         raise ValueError(f"benchmark must be a plain name, got {benchmark!r}")
     day = (date or datetime.date.today()).isoformat()
     return Path(root) / benchmark / f"{day}-{short_commit(cwd)}{suffix}"
+
+
+def write_result(out: Path, result: dict) -> None:
+    """Write ``result`` as JSON to ``out`` atomically, creating its folder. The writer is imported here, not at
+    module level: it loads torch, which must not be loaded before a benchmark's measurements."""
+    from train_world.capture.format import atomic_write_json
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out, result)

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ._results import default_out
+from ._results import default_out, write_result
 
 MODES = ("auto", "passive")
 
@@ -91,10 +91,7 @@ def run(
         "summary": summary,
         "auto_over_passive": {s: round(v["auto"] / v["passive"], 3) for s, v in summary.items()},
     }
-    from train_world.capture.format import atomic_write_json  # (loads torch: not before the measurements)
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, result)
+    write_result(out, result)
     return result
 
 

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ._results import default_out
+from ._results import default_out, write_result
 
 TARGET_GAP_DB = 0.5
 TARGET_MINUTES = 20.0
@@ -138,10 +138,7 @@ def run(out: Path, scenes: list[str], work: Path | None, synth_args: list[str], 
         },
         "targets": {"gap_db": TARGET_GAP_DB, "photos_to_world_min": TARGET_MINUTES},
     }  # fmt: skip
-    from train_world.capture.format import atomic_write_json
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, result)
+    write_result(out, result)
     return result
 
 

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ._results import default_out
+from ._results import default_out, write_result
 
 SETTINGS = ("idle", "busy", "training")
 _SPIN = "import time\nwhile True:\n    time.perf_counter()\n"
@@ -121,10 +121,7 @@ def run(
         "summary": summary,
         "speed": speed,
     }  # fmt: skip
-    from train_world.capture.format import atomic_write_json  # (loads torch: not before the measurements)
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out, result)
+    write_result(out, result)
     return result
 
 

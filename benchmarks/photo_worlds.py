@@ -8,9 +8,13 @@ Per scene, each step a fresh process, in ``--work`` (kept) or a temporary folder
 1. ``dsg-synth --scene S --as-photos [--marker M]``: photos, and the true capture under ``ground_truth/``;
 2. ``dsg-capture photos --out est [--marker-size M]``: camera poses, table frame and object motions from the
    images alone (timed);
-3. ``dsg-train est``: the world from the photos (timed, with its peak RSS);
+3. ``dsg-train est --holdout-every 0``: the world from the photos, every photo training as every true view
+   trains the reference (timed, with its peak RSS);
 4. ``dsg-train photos/ground_truth``: the reference, the same training on the true cameras and poses;
 5. ``dsg-eval`` of both worlds at the ground truth's test states (the photo world with ``--align-frames``).
+
+With ``--work``, a second run reuses every step an earlier run in that folder finished with the same
+command (its time is kept in ``<scene>/steps.json``); the evaluations always run again.
 
 Writes ``{config, scenes: {S: {capture_s, train_s, photos_to_world_min, peak_rss_gib, photo: {psnr, ssim,
 mask_iou}, reference: {...}, gap_db}}, summary: {mean_gap_db, worst_gap_db, slowest_min, mean_photo_psnr,
@@ -70,37 +74,47 @@ def _metrics(report: Path) -> dict[str, float | None]:
     return {k: m.get(k) for k in ("psnr", "ssim", "mask_iou")}
 
 
-def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], marker: float | None) -> dict:
-    """Every step for one scene under ``work/name``; returns the scene's figures."""
+def _step(d: Path, name: str, cmd: list[str], done: Path, ran: list[str]) -> tuple[float, int]:
+    """Run one step of a scene unless an earlier run in the same ``--work`` folder ran the same command, left
+    ``done`` and recorded its figures in ``d/steps.json``, and no step before it ran again (``ran``, the steps
+    run so far); records (wall seconds, peak RSS bytes) there."""
+    record = d / "steps.json"
+    steps = json.loads(record.read_text()) if record.is_file() else {}
+    old = steps.get(name)
+    if not ran and done.exists() and isinstance(old, dict) and old.get("cmd") == cmd[1:]:
+        return float(old["wall_s"]), int(old["peak_rss"])
+    wall, rss = _run(cmd, d / f"{name}.log")
+    ran.append(name)
+    steps[name] = {"cmd": cmd[1:], "wall_s": wall, "peak_rss": rss}
+    tmp = record.with_suffix(".tmp")
+    tmp.write_text(json.dumps(steps, indent=1))
+    os.replace(tmp, record)
+    return wall, rss
+
+
+def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], marker: float | None,
+          eval_args: list[str] | None = None) -> dict:  # fmt: skip
+    """Every step for one scene under ``work/name``; returns the scene's figures. Steps whose outputs an
+    earlier run left in ``work/name`` (with their times in ``steps.json``) are not run again."""
     d = work / name
     d.mkdir(parents=True, exist_ok=True)
-    photos, est = d / "photos", d / "est"
+    photos, est, truth = d / "photos", d / "est", d / "photos" / "ground_truth"
     mk = ["--marker", str(marker)] if marker else []
-    _run([*SYNTH, "--scene", name, "--as-photos", "--out", str(photos), "--overwrite", "--quiet", *mk, *synth_args],
-         d / "synth.log")  # fmt: skip
-    cap_s, _ = _run([*CAPTURE, str(photos), "--out", str(est), *(["--marker-size", str(marker)] if marker else [])],
-                    d / "capture.log")  # fmt: skip
-    train_s, rss = _run(
-        [*TRAIN, str(est), "--out", str(d / "photo.dsgworld"), "--quiet", *train_args], d / "train.log"
-    )
-    ref_s, ref_rss = _run(
-        [
-            *TRAIN,
-            str(photos / "ground_truth"),
-            "--out",
-            str(d / "reference.dsgworld"),
-            "--quiet",
-            *train_args,
-        ],
-        d / "train_reference.log",
-    )
-    truth = photos / "ground_truth"
-    _run([*EVAL, str(d / "photo.dsgworld"), str(truth), "--align-frames", "--out", str(d / "eval_photo")],
+    ev, ran = list(eval_args or []), []
+    _step(d, "synth", [*SYNTH, "--scene", name, "--as-photos", "--out", str(photos), "--overwrite", "--quiet",
+                       *mk, *synth_args], truth / "scene.json", ran)  # fmt: skip
+    cap_s, _ = _step(d, "capture", [*CAPTURE, str(photos), "--out", str(est), "--overwrite",
+                                    *(["--marker-size", str(marker)] if marker else [])],
+                     est / "scene.json", ran)  # fmt: skip
+    # every photo trains, as every true view trains the reference: the test states are the evaluation
+    train_s, rss = _step(d, "train", [*TRAIN, str(est), "--out", str(d / "photo.dsgworld"), "--quiet",
+                                      "--holdout-every", "0", *train_args], d / "photo.dsgworld", ran)  # fmt: skip
+    ref_s, ref_rss = _step(d, "train_reference", [*TRAIN, str(truth), "--out", str(d / "reference.dsgworld"),
+                                                  "--quiet", *train_args], d / "reference.dsgworld", ran)  # fmt: skip
+    _run([*EVAL, str(d / "photo.dsgworld"), str(truth), "--align-frames", "--out", str(d / "eval_photo"), *ev],
          d / "eval_photo.log")  # fmt: skip
-    _run(
-        [*EVAL, str(d / "reference.dsgworld"), str(truth), "--out", str(d / "eval_reference")],
-        d / "eval_ref.log",
-    )
+    _run([*EVAL, str(d / "reference.dsgworld"), str(truth), "--out", str(d / "eval_reference"), *ev],
+         d / "eval_reference.log")  # fmt: skip
     photo, ref = _metrics(d / "eval_photo" / "report.json"), _metrics(d / "eval_reference" / "report.json")
     report = json.loads((est / "report.json").read_text()) if (est / "report.json").is_file() else {}
     return {

@@ -11,15 +11,19 @@ Per scene, each step a fresh process, in ``--work`` (kept) or a temporary folder
 3. ``dsg-train est --holdout-every 0``: the world from the photos, every photo training as every true view
    trains the reference (timed, with its peak RSS);
 4. ``dsg-train photos/ground_truth``: the reference, the same training on the true cameras and poses;
-5. ``dsg-eval`` of both worlds at the ground truth's test states (the photo world with ``--align-frames``).
+5. ``dsg-eval --align-views 60`` of both worlds at the ground truth's test states (the photo world with
+   ``--align-frames``): each test camera aligned to the world it scores before scoring, as pose-free
+   evaluations do (:mod:`train_world.eval.view_align`); the unaligned figures are kept
+   (``psnr_unaligned``, ``gap_db_unaligned``).
 
 With ``--work``, a second run reuses every step an earlier run in that folder finished with the same
 command (its time is kept in ``<scene>/steps.json``); the evaluations always run again.
 
 Writes ``{config, scenes: {S: {capture_s, train_s, photos_to_world_min, peak_rss_gib, photo: {psnr, ssim,
-mask_iou}, reference: {...}, gap_db}}, summary: {mean_gap_db, worst_gap_db, slowest_min, mean_photo_psnr,
-mean_reference_psnr}, targets}``. ``gap_db`` is the reference's PSNR minus the photo world's. Times depend on
-the machine and its load: run it on an idle machine.
+mask_iou, psnr_unaligned}, reference: {...}, gap_db, gap_db_unaligned}}, summary: {mean_gap_db,
+mean_gap_db_unaligned, worst_gap_db, slowest_min, mean_photo_psnr, mean_reference_psnr}, targets}``.
+``gap_db`` is the reference's PSNR minus the photo world's. Times depend on the machine and its load: run it
+on an idle machine.
 """
 
 from __future__ import annotations
@@ -70,8 +74,11 @@ SYNTH, CAPTURE, TRAIN, EVAL = (
 
 
 def _metrics(report: Path) -> dict[str, float | None]:
-    m = json.loads(report.read_text())["mean"]
-    return {k: m.get(k) for k in ("psnr", "ssim", "mask_iou")}
+    r = json.loads(report.read_text())
+    out = {k: r["mean"].get(k) for k in ("psnr", "ssim", "mask_iou")}
+    if "mean_unaligned" in r:
+        out["psnr_unaligned"] = r["mean_unaligned"]["psnr"]
+    return out
 
 
 def _step(d: Path, name: str, cmd: list[str], done: Path, ran: list[str]) -> tuple[float, int]:
@@ -128,23 +135,33 @@ def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], m
         "photo": photo,
         "reference": ref,
         "gap_db": round(ref["psnr"] - photo["psnr"], 3),
+        **(
+            {"gap_db_unaligned": round(ref["psnr_unaligned"] - photo["psnr_unaligned"], 3)}
+            if "psnr_unaligned" in photo and "psnr_unaligned" in ref
+            else {}
+        ),
     }
 
 
 def run(out: Path, scenes: list[str], work: Path | None, synth_args: list[str], train_args: list[str],
-        marker: float | None) -> dict[str, Any]:  # fmt: skip
+        marker: float | None, eval_args: list[str] | None = None) -> dict[str, Any]:  # fmt: skip
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(work) if work is not None else Path(tmp)
         for s in scenes:
-            results[s] = scene(s, root, synth_args, train_args, marker)
+            results[s] = scene(s, root, synth_args, train_args, marker, eval_args)
     gaps = [r["gap_db"] for r in results.values()]
     result = {
         "config": {"scenes": scenes, "synth_args": synth_args, "train_args": train_args, "marker_m": marker,
-                   "cpus": os.cpu_count()},
+                   "eval_args": list(eval_args or []), "cpus": os.cpu_count()},
         "scenes": results,
         "summary": {
             "mean_gap_db": round(sum(gaps) / len(gaps), 3),
+            **(
+                {"mean_gap_db_unaligned": round(sum(r["gap_db_unaligned"] for r in results.values()) / len(gaps), 3)}
+                if all("gap_db_unaligned" in r for r in results.values())
+                else {}
+            ),
             "worst_gap_db": max(gaps),
             "slowest_min": max(r["photos_to_world_min"] for r in results.values()),
             "mean_photo_psnr": round(sum(r["photo"]["psnr"] for r in results.values()) / len(results), 3),
@@ -176,6 +193,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--marker", type=float, default=0.1, help="ArUco marker side in metres for scale (0: none)"
     )
+    p.add_argument(
+        "--align-views",
+        type=int,
+        default=60,
+        metavar="STEPS",
+        help="dsg-eval --align-views STEPS for both worlds (default 60; 0: score the cameras as given)",
+    )
     p.add_argument("--preset", default=None, help="dsg-train preset (default: dsg-train's)")
     p.add_argument("--iterations", type=int, help="dsg-train steps (default: the preset's)")
     args = p.parse_args(argv)
@@ -190,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     train = ["--seed", str(args.seed)] + (["--preset", args.preset] if args.preset else [])
     train += ["--iterations", str(args.iterations)] if args.iterations else []
     out = args.out or default_out("photo_worlds")
-    r = run(out, scenes, args.work, synth, train, args.marker or None)
+    ev = ["--align-views", str(args.align_views)] if args.align_views else []
+    r = run(out, scenes, args.work, synth, train, args.marker or None, ev)
     print(json.dumps(r["summary"]))
     return 0
 

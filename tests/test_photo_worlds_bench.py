@@ -24,9 +24,13 @@ def test_photo_worlds_quick(tmp_path):
         "--iterations",
         "60",
     ]
-    assert main([*args, "--work", str(tmp_path / "work")]) == 0
+    assert main([*args, "--work", str(tmp_path / "work"), "--align-views", "4"]) == 0
     r = json.loads(out.read_text())
     s = r["scenes"]["four_mixed"]
+    assert r["config"]["eval_args"] == ["--align-views", "4"]
+    assert s["gap_db_unaligned"] == pytest.approx(
+        s["reference"]["psnr_unaligned"] - s["photo"]["psnr_unaligned"], abs=1e-3
+    )
     assert s["registered"] == {"state1": "24/24", "state2": "24/24"}
     for k in ("photo", "reference"):
         assert math.isfinite(s[k]["psnr"]) and 5 < s[k]["psnr"] < 60 and 0 <= s[k]["mask_iou"] <= 1
@@ -36,6 +40,21 @@ def test_photo_worlds_quick(tmp_path):
     assert r["summary"]["worst_gap_db"] == s["gap_db"] and r["targets"]["gap_db"] == 0.5
     report = json.loads((tmp_path / "work" / "four_mixed" / "eval_photo" / "report.json").read_text())
     assert "frame_alignment" in report  # the photo world was scored in the ground truth's frame
+    assert report["mean_unaligned"]["psnr"] == pytest.approx(s["photo"]["psnr_unaligned"])
+    for state in report["states"]:
+        per_state = json.loads(
+            (tmp_path / "work" / "four_mixed" / "eval_photo" / state / "report.json").read_text()
+        )
+        assert per_state["view_alignment"]["settings"]["steps"] == 4
+    # a second run in the same folder reuses every finished step (their times too) and scores again
+    steps = json.loads((tmp_path / "work" / "four_mixed" / "steps.json").read_text())
+    assert set(steps) == {"synth", "capture", "train", "train_reference"}
+    assert "--holdout-every" in steps["train"]["cmd"]  # every photo trains, as every true view does
+    assert main([*args, "--work", str(tmp_path / "work"), "--align-views", "0"]) == 0
+    again = json.loads(out.read_text())["scenes"]["four_mixed"]
+    assert (again["train_s"], again["capture_s"]) == (s["train_s"], s["capture_s"])
+    assert again["photo"]["psnr"] == pytest.approx(s["photo"]["psnr_unaligned"], abs=1e-6)
+    assert "gap_db_unaligned" not in again
 
 
 def test_photo_worlds_refuses_unknown_scenes(tmp_path, capsys):

@@ -15,6 +15,7 @@ from train_world.capture import CaptureError
 from train_world.eval import evaluate as _lib
 from train_world.eval.evaluate import default_state, evaluate, evaluate_test_states
 from train_world.eval.frames import fit_frame_alignment, needs_alignment
+from train_world.eval.view_align import ViewAlignment
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -55,6 +56,15 @@ def _parser() -> argparse.ArgumentParser:
         help="take the capture to be in the world's frame (the default for any other world)",
     )
     p.add_argument(
+        "--align-views",
+        type=int,
+        nargs="?",
+        const=ViewAlignment.steps,
+        metavar="STEPS",
+        help="before scoring, align each camera's pose to the world against its image (STEPS Adam steps, "
+        f"default {ViewAlignment.steps}), as pose-free evaluations do; the unaligned PSNR is reported beside it",
+    )
+    p.add_argument(
         "--suite",
         action="store_true",
         help="instead: run the DSG-World comparison (dsg-suite); the other options are dsg-suite's",
@@ -70,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         return suite_main([a for a in argv if a != "--suite"])
     args = _parser().parse_args(argv)
     try:
+        views = None if args.align_views is None else ViewAlignment(steps=args.align_views)
         world = load_world(args.world)
         align = needs_alignment(world, args.capture) if args.align is None else args.align
         alignment = fit_frame_alignment(world, args.capture) if align else None
@@ -85,18 +96,24 @@ def main(argv: list[str] | None = None) -> int:
             )
         state = args.state if args.state is not None else default_state(args.world, args.capture)
         if state == "test":
-            r = evaluate_test_states(args.world, args.capture, args.out, alignment=alignment)
+            r = evaluate_test_states(
+                args.world, args.capture, args.out, alignment=alignment, view_alignment=views
+            )
         elif alignment is not None and state is None:
             raise ValueError(
                 f"{args.capture}: a ground truth in another frame is scored at its test states or a named "
                 "--state; it has no test states"
             )
         else:
-            r = evaluate(args.world, args.capture, args.out, state=state, alignment=alignment)
+            r = evaluate(
+                args.world, args.capture, args.out, state=state, alignment=alignment, view_alignment=views
+            )
     except (WorldFormatError, CaptureError, ValueError, KeyError) as e:
         print(f"dsg-eval: error: {e}", file=sys.stderr)
         return 2
     summary = {"out": str(args.out), "views": r["views"], "mean": r["mean"]}
+    if "mean_unaligned" in r:
+        summary["mean_unaligned"] = r["mean_unaligned"]
     if alignment is not None:
         summary["frame_alignment"] = {
             k: v for k, v in alignment.to_dict().items() if k not in ("rotation", "identity")

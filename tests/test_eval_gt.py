@@ -21,7 +21,13 @@ from dsg_gym.world import World, load_world
 from train_world.cli import train as train_cli
 from train_world.cli.eval import main as eval_main
 from train_world.eval.evaluate import evaluate_test_states
-from train_world.eval.frames import FrameAlignment, fit_frame_alignment, fit_similarity, needs_alignment
+from train_world.eval.frames import (
+    FrameAlignment,
+    fit_frame_alignment,
+    fit_similarity,
+    motion_errors,
+    needs_alignment,
+)
 
 
 def _rot(axis, deg):
@@ -255,3 +261,36 @@ def test_aligning_each_view_recovers_what_camera_errors_cost(trained, tmp_path, 
         assert "unaligned mean PSNR" in (out / s / "report.md").read_text()
     assert eval_main([str(world), str(shaken), "--out", str(out), "--align-views", "0"]) == 2
     assert "steps must be an integer >= 1" in capsys.readouterr().err
+
+
+def test_motion_errors_against_the_ground_truth(trained, tmp_path):
+    cap, world, moved = trained
+    w = load_world(world)
+    al = fit_frame_alignment(w, moved)
+    exact = motion_errors(w, moved, al)
+    assert exact["src"] == "state1" and exact["dst"] == "state2" and not exact["refined"]
+    assert [o["name"] for o in exact["objects"]] == list(w.object_names)
+    for o in exact["objects"]:  # the synthetic world was given the true motions: nothing to find
+        assert o["estimate_translation"] < 1e-6 and o["refined_rotation_deg"] < 1e-3
+    # a world whose given motion puts the first object 4 mm off (world units = metres) and turned by 1 degree
+    rec = json.loads(json.dumps(w.metadata["motions"]))
+    T = np.array(rec["initial"])
+    o2 = T[0, :3, :3] @ np.asarray(w.poses["state1"])[0, :3, 3] + T[0, :3, 3]  # its origin in state 2
+    X = np.eye(4)  # a turn about that origin, then a shift
+    X[:3, :3] = _rot([0, 0, 1.0], 1.0)
+    X[:3, 3] = o2 - X[:3, :3] @ o2 + [0.004, 0, 0]
+    T[0] = X @ T[0]
+    rec["initial"] = T.tolist()
+    off = dataclasses.replace(w, metadata={**w.metadata, "motions": rec})
+    e = motion_errors(off, moved, al)["objects"]
+    assert e[0]["estimate_translation"] == pytest.approx(0.004 * SCALE, rel=1e-4)  # in the truth's units
+    assert e[0]["estimate_rotation_deg"] == pytest.approx(1.0, abs=1e-6)
+    assert e[1]["estimate_translation"] < 1e-6 and e[0]["refined_translation"] < 1e-6
+    # the dsg-eval report carries them
+    assert eval_main([str(world), str(moved), "--out", str(tmp_path / "e"), "--align-frames"]) == 0
+    rep = json.loads((tmp_path / "e" / "report.json").read_text())
+    assert rep["motion_errors"]["objects"] == exact["objects"]
+    assert "Object motions state1 -> state2" in (tmp_path / "e" / "report.md").read_text()
+    # without motions in the world there is nothing to compare
+    bare = dataclasses.replace(w, metadata={k: v for k, v in w.metadata.items() if k != "motions"})
+    assert motion_errors(bare, moved, al) is None

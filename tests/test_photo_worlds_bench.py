@@ -28,6 +28,11 @@ def test_photo_worlds_quick(tmp_path):
     r = json.loads(out.read_text())
     s = r["scenes"]["four_mixed"]
     assert r["config"]["eval_args"] == ["--align-views", "4"]
+    assert len(s["motions"]) == 4  # four objects, each against the truth, as estimated and as refined
+    for m in s["motions"].values():
+        assert 0 <= m["estimate_mm"] < 50 and 0 <= m["refined_rotation_mod_symmetry_deg"] < 20
+        assert m["refined_rotation_mod_symmetry_deg"] <= m["refined_rotation_deg"] + 1e-9
+    assert r["summary"]["worst_estimate_mm"] == max(m["estimate_mm"] for m in s["motions"].values())
     assert s["gap_db_unaligned"] == pytest.approx(
         s["reference"]["psnr_unaligned"] - s["photo"]["psnr_unaligned"], abs=1e-3
     )

@@ -19,7 +19,7 @@ from train_world.capture.alignment import rotation_angle_deg, similarity_matrix,
 from train_world.capture.cameras import GL_TO_CV
 from train_world.capture.loader import Capture
 
-__all__ = ["compare_captures", "shape_symmetries"]
+__all__ = ["compare_captures", "motion_error", "shape_symmetries"]
 
 
 def _turn(axis: int, deg: float) -> np.ndarray:
@@ -69,6 +69,22 @@ def _symmetric_error(r_est: np.ndarray, r_gt: np.ndarray, q1: np.ndarray, sym) -
     return min(float(rotation_angle_deg(r_est.T @ r_gt @ q1 @ m @ q1.T)) for m in sym)
 
 
+def motion_error(T: np.ndarray, T_true: np.ndarray, P1_true: np.ndarray, shape: dict | None = None) -> dict:
+    """How far a rigid motion ``T`` ``[4,4]`` of one object is from its true motion ``T_true`` (both in the
+    truth's frame), the object's true first-state pose being ``P1_true``: ``position_error`` (where the two put
+    the object's centre, truth units), ``rotation_error_deg`` and ``rotation_error_mod_symmetry_deg`` (modulo
+    the symmetries of ``shape``, a ``dsg-synth`` shape description; module docstring)."""
+    T, T_true, P1 = (np.asarray(a, dtype=np.float64) for a in (T, T_true, P1_true))
+    c = P1[:3, 3]
+    pos = np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - (T_true[:3, :3] @ c + T_true[:3, 3]))
+    return {
+        "position_error": float(pos),
+        "rotation_error_deg": float(rotation_angle_deg(T[:3, :3].T @ T_true[:3, :3])),
+        "rotation_error_mod_symmetry_deg": _symmetric_error(T[:3, :3], T_true[:3, :3], P1[:3, :3],
+                                                            shape_symmetries(shape)),
+    }  # fmt: skip
+
+
 def _cameras(cap: Capture) -> dict[str, np.ndarray]:
     out = {}
     for s, v in cap.states.items():
@@ -99,18 +115,12 @@ def compare_captures(estimated: Capture, truth: Capture, src: str = "state1", ds
         if o.name not in by_name:
             continue
         j = by_name[o.name]
-        Tw = S @ T_est[i] @ np.linalg.inv(S)
-        c = truth.poses[src][j][:3, 3] if src in truth.poses else np.zeros(3)
-        pos = np.linalg.norm(Tw[:3, :3] @ c + Tw[:3, 3] - (T_gt[j][:3, :3] @ c + T_gt[j][:3, 3]))
-        ang = float(rotation_angle_deg(Tw[:3, :3].T @ T_gt[j][:3, :3]))
-        q1 = truth.poses[src][j][:3, :3] if src in truth.poses else np.eye(3)
-        sym = shape_symmetries(shapes.get(o.name))
+        P1 = truth.poses[src][j] if src in truth.poses else np.eye(4)
+        c = P1[:3, 3]
         objects.append(
             {
                 "name": o.name,
-                "position_error": float(pos),
-                "rotation_error_deg": ang,
-                "rotation_error_mod_symmetry_deg": _symmetric_error(Tw[:3, :3], T_gt[j][:3, :3], q1, sym),
+                **motion_error(S @ T_est[i] @ np.linalg.inv(S), T_gt[j], P1, shapes.get(o.name)),
                 "true_rotation_deg": float(rotation_angle_deg(T_gt[j][:3, :3])),
                 "true_translation": float(np.linalg.norm(T_gt[j][:3, 3] + T_gt[j][:3, :3] @ c - c)),
             }

@@ -51,7 +51,7 @@ from dsg_gym.splat import rasterize, spherical_harmonics
 from dsg_gym.world import World, load_world
 from train_world.capture import load_capture
 from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
-from train_world.eval.frames import FrameAlignment
+from train_world.eval.frames import FrameAlignment, motion_errors
 from train_world.eval.metrics import mask_iou, psnr, psnr_from_mse, ssim
 from train_world.eval.regions import RegionErrors, capture_coverage, combine
 from train_world.eval.view_align import ViewAlignment, align_views
@@ -405,6 +405,9 @@ def evaluate_test_states(
         report["mean_unaligned"] = {"psnr": float(np.mean(unaligned))}
     if alignment is not None:
         report["frame_alignment"] = alignment.to_dict()
+        errors = motion_errors(load_world(world_path), capture, alignment)
+        if errors is not None:
+            report["motion_errors"] = errors
     lines = [
         f"# Evaluation of `{Path(world_path).name}` at the test states",
         "",
@@ -420,6 +423,18 @@ def evaluate_test_states(
         f"| **mean** | {report['views']} | **{_fmt(mean['psnr'])}** | **{_fmt(mean['ssim'])}** | "
         f"**{_fmt(mean['mask_iou'])}** |"
     )
+    if "motion_errors" in report:
+        me = report["motion_errors"]
+        unit = "mm" if me["units"] == "metres" else me["units"]
+        key = "mm" if me["units"] == "metres" else "translation"
+        lines += ["", f"Object motions {me['src']} -> {me['dst']} against the ground truth's:", "",
+                  f"| object | given ({unit}) | given (deg, modulo symmetry) | trained ({unit}) | trained (deg) |",
+                  "| --- | --- | --- | --- | --- |"]  # fmt: skip
+        lines += [
+            f"| {o['name']} | {o['estimate_' + key]:.3g} | {o['estimate_rotation_mod_symmetry_deg']:.3g} | "
+            f"{o['refined_' + key]:.3g} | {o['refined_rotation_mod_symmetry_deg']:.3g} |"
+            for o in me["objects"]
+        ]
     if unaligned:
         u = float(np.mean(unaligned))
         lines += ["", f"Each camera aligned to the world first; unaligned mean PSNR {_fmt(u)} dB."]

@@ -42,6 +42,7 @@ __all__ = [
     "capture_cameras",
     "fit_frame_alignment",
     "fit_similarity",
+    "motion_errors",
     "needs_alignment",
     "world_camera_names",
 ]
@@ -277,3 +278,48 @@ def needs_alignment(world: World, capture: str | Path) -> bool:
         return False
     path = src.get("path")
     return not (isinstance(path, str) and Path(path).resolve() == Path(capture).resolve())
+
+
+def motion_errors(world: World, truth: str | Path, alignment: FrameAlignment) -> dict[str, Any] | None:
+    """How far the world's object motions between its two training states are from the ground truth's, per
+    object, for the motions as the world was given them (``estimate_*``, from ``dsg-capture``) and as trained
+    (``refined_*``): the world's motions are moved into the truth's frame through ``alignment`` and measured as
+    :func:`train_world.capture.compare.motion_error` does (where they put the object's true centre, in the
+    truth's units and mm when those are metres; the angle, also modulo the object's shape symmetry when the
+    truth describes its shape). None when the world records no motions (``metadata["motions"]``) or the truth
+    lacks either state's object poses or has other objects."""
+    from train_world.capture import load_capture
+    from train_world.capture.compare import motion_error
+
+    rec = world.metadata.get("motions")
+    if not isinstance(rec, Mapping) or not world.num_objects:
+        return None
+    src, dst = rec.get("src"), rec.get("dst")
+    cap = load_capture(Path(truth), states=[], load_depth=False)
+    if src not in cap.poses or dst not in cap.poses or tuple(cap.object_ids) != tuple(world.object_ids):
+        return None
+    P1 = np.asarray(cap.poses[src], np.float64)
+    true_motion = np.asarray(cap.poses[dst], np.float64) @ np.linalg.inv(P1)
+    S, S_inv = alignment.matrix, np.linalg.inv(alignment.matrix)
+    shapes = {
+        o.get("name"): o.get("shape") for o in cap.metadata.get("objects", []) if isinstance(o, Mapping)
+    }
+    objects = []
+    for k, name in enumerate(world.object_names):
+        e: dict[str, Any] = {"name": name}
+        for key, tag in (("initial", "estimate"), ("final", "refined")):
+            T = S_inv @ np.asarray(rec[key], dtype=np.float64)[k] @ S
+            m = motion_error(T, true_motion[k], P1[k], shapes.get(cap.objects[k].name))
+            e[f"{tag}_translation"] = m["position_error"]
+            if cap.units == "metres":
+                e[f"{tag}_mm"] = m["position_error"] * 1000.0
+            e[f"{tag}_rotation_deg"] = m["rotation_error_deg"]
+            e[f"{tag}_rotation_mod_symmetry_deg"] = m["rotation_error_mod_symmetry_deg"]
+        objects.append(e)
+    return {
+        "src": src,
+        "dst": dst,
+        "refined": bool(rec.get("refined")),
+        "units": cap.units,
+        "objects": objects,
+    }

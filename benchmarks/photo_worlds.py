@@ -16,8 +16,10 @@ Per scene, each step a fresh process, in ``--work`` (kept) or a temporary folder
    evaluations do (:mod:`train_world.eval.view_align`); the unaligned figures are kept
    (``psnr_unaligned``, ``gap_db_unaligned``).
 
-With ``--work``, a second run reuses every step an earlier run in that folder finished with the same
-command (its time is kept in ``<scene>/steps.json``); the evaluations always run again.
+With ``--work``, a second run reuses every step an earlier run in that folder finished with the same command
+(its time is kept in ``<scene>/steps.json``) unless a step it builds on ran again (the photo world builds on
+the photos and the capture, the reference on the photos); remove a step's output to make it run again. The
+evaluations always run again.
 
 Writes ``{config, scenes: {S: {capture_s, train_s, photos_to_world_min, peak_rss_gib, photo: {psnr, ssim,
 mask_iou, psnr_unaligned}, reference: {...}, gap_db, gap_db_unaligned, motions: {object: {estimate_mm,
@@ -102,14 +104,17 @@ def _metrics(report: Path) -> dict[str, float | None]:
     return out
 
 
-def _step(d: Path, name: str, cmd: list[str], done: Path, ran: list[str]) -> tuple[float, int]:
+def _step(
+    d: Path, name: str, cmd: list[str], done: Path, ran: list[str], needs: tuple[str, ...] = ()
+) -> tuple[float, int]:
     """Run one step of a scene unless an earlier run in the same ``--work`` folder ran the same command, left
-    ``done`` and recorded its figures in ``d/steps.json``, and no step before it ran again (``ran``, the steps
-    run so far); records (wall seconds, peak RSS bytes) there."""
+    ``done`` and recorded its figures in ``d/steps.json``, and none of the steps it ``needs`` ran again in
+    this run (``ran``: the steps run so far); records (wall seconds, peak RSS bytes) there."""
     record = d / "steps.json"
     steps = json.loads(record.read_text()) if record.is_file() else {}
     old = steps.get(name)
-    if not ran and done.exists() and isinstance(old, dict) and old.get("cmd") == cmd[1:]:
+    fresh = any(n in ran for n in needs)
+    if not fresh and done.exists() and isinstance(old, dict) and old.get("cmd") == cmd[1:]:
         return float(old["wall_s"]), int(old["peak_rss"])
     wall, rss = _run(cmd, d / f"{name}.log")
     ran.append(name)
@@ -133,12 +138,14 @@ def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], m
                        *mk, *synth_args], truth / "scene.json", ran)  # fmt: skip
     cap_s, _ = _step(d, "capture", [*CAPTURE, str(photos), "--out", str(est), "--overwrite",
                                     *(["--marker-size", str(marker)] if marker else [])],
-                     est / "scene.json", ran)  # fmt: skip
+                     est / "scene.json", ran, ("synth",))  # fmt: skip
     # every photo trains, as every true view trains the reference: the test states are the evaluation
     train_s, rss = _step(d, "train", [*TRAIN, str(est), "--out", str(d / "photo.dsgworld"), "--quiet",
-                                      "--holdout-every", "0", *train_args], d / "photo.dsgworld", ran)  # fmt: skip
+                                      "--holdout-every", "0", *train_args],
+                         d / "photo.dsgworld", ran, ("synth", "capture"))  # fmt: skip
     ref_s, ref_rss = _step(d, "train_reference", [*TRAIN, str(truth), "--out", str(d / "reference.dsgworld"),
-                                                  "--quiet", *train_args], d / "reference.dsgworld", ran)  # fmt: skip
+                                                  "--quiet", *train_args],
+                           d / "reference.dsgworld", ran, ("synth",))  # fmt: skip
     _run([*EVAL, str(d / "photo.dsgworld"), str(truth), "--align-frames", "--out", str(d / "eval_photo"), *ev],
          d / "eval_photo.log")  # fmt: skip
     _run([*EVAL, str(d / "reference.dsgworld"), str(truth), "--out", str(d / "eval_reference"), *ev],

@@ -270,3 +270,30 @@ def test_shape_symmetries():
     assert len(shape_symmetries({"type": "box", "extents": [1, 2, 3]})) == 4
     assert len(shape_symmetries({"type": "box", "extents": [1, 1, 3]})) == 8
     assert len(shape_symmetries({"type": "mesh", "mesh": "prism", "sides": 6})) == 12
+
+
+def test_the_background_points_are_written_and_start_training(photos, estimated):
+    from train_world.capture.points import capture_points
+    from train_world.single_state.data import load_training_data
+    from train_world.single_state.presets import TrainConfig, get_preset
+    from train_world.single_state.trainer import Trainer
+
+    out, report = estimated
+    scene = json.loads((out / "scene.json").read_text())
+    assert (
+        scene["points"]["path"] == "points3d.ply" and scene["points"]["count"] == report["background_points"]
+    )
+    xyz, rgb = capture_points(out, scene)
+    assert len(xyz) == report["background_points"] > 100
+    lo, hi = np.asarray(scene["table"]["bounds"])
+    on_table = (np.abs(xyz[:, 2]) < 0.02) & np.all((xyz[:, :2] > lo[:2]) & (xyz[:, :2] < hi[:2]), axis=1)
+    assert on_table.mean() > 0.4  # most features lie on the table top, at z = 0 of the table frame
+    assert rgb.std() > 0.05 and not np.all(rgb == 0.5)  # coloured from the photos, not left grey
+    # training on the capture starts from these points (then random points in the table box)
+    cfg = TrainConfig(preset=get_preset("quick"), state="state1", holdout_every=0)
+    data = load_training_data(out, cfg)
+    np.testing.assert_array_equal(data.points[0], xyz)
+    t = Trainer(data, cfg)
+    means = t.field.means.detach().double().numpy()
+    np.testing.assert_allclose(means[: len(xyz)], xyz, atol=1e-6)
+    assert len(means) == t.preset.num_init_points

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import pytest
 
@@ -60,6 +61,12 @@ def test_photo_worlds_quick(tmp_path):
     assert (again["train_s"], again["capture_s"]) == (s["train_s"], s["capture_s"])
     assert again["photo"]["psnr"] == pytest.approx(s["photo"]["psnr_unaligned"], abs=1e-6)
     assert "gap_db_unaligned" not in again
+    # without the capture's output, the capture and the photo world run again; the reference stays
+    shutil.rmtree(tmp_path / "work" / "four_mixed" / "est")
+    assert main([*args, "--work", str(tmp_path / "work"), "--align-views", "0"]) == 0
+    third = json.loads(out.read_text())["scenes"]["four_mixed"]
+    assert third["reference_train_s"] == s["reference_train_s"] and third["train_s"] != s["train_s"]
+    assert (tmp_path / "work" / "four_mixed" / "est" / "scene.json").is_file()
 
 
 def test_photo_worlds_refuses_unknown_scenes(tmp_path, capsys):

@@ -8,6 +8,7 @@
     OUT/<state>/transforms.json    pinhole intrinsics + registered frames (OpenGL camera-to-world)
     OUT/<state>/images/<stem>.png  undistorted photos
     OUT/<state>/masks/<stem>.png   undistorted object-id masks
+    OUT/points3d.ply               the background's structure-from-motion points (table frame, coloured)
     OUT/report.json                registered views, reprojection error, table fit, per-object estimates, scale
 
 Object poses: in ``state1`` each object sits at its centre (visual hull centroid) with the table frame's
@@ -56,6 +57,7 @@ from train_world.capture.photos import (
     load_photo,
     read_photo_capture,
 )
+from train_world.capture.points import POINTS_FILE, point_colours, write_points_ply
 from train_world.capture.sfm import SfmResult, quiet_colmap, run_sfm, silenced_stderr
 from train_world.capture.silhouettes import SilhouetteView, object_centre
 from train_world.capture.undistort import Undistorter
@@ -249,6 +251,20 @@ def build_capture(
     return report
 
 
+def _write_points(stage: Path, sfm: SfmResult, unds: dict, frame) -> int:
+    """The background's structure-from-motion points in the table frame, coloured from every 4th undistorted
+    view of each state, to ``stage/points3d.ply`` (:mod:`.points`); returns their count."""
+    images, w2c = [], []
+    for s in PHOTO_STATES:
+        for stem in sfm.registered[s][::4]:
+            with Image.open(stage / s / "images" / f"{stem}.png") as im:
+                images.append(np.asarray(im.convert("RGB")))
+            w2c.append(np.linalg.inv(frame.camera_to_world(sfm.world_to_camera[f"{s}/{stem}"])))
+    xyz = frame.points(sfm.points)
+    write_points_ply(stage / POINTS_FILE, xyz, point_colours(xyz, images, w2c, unds["state1"].K))
+    return int(len(xyz))
+
+
 def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info=None) -> dict:
     poses, rel, objects_report = {"state1": [], "state2": []}, [], []
     for o in capture.objects:
@@ -272,6 +288,7 @@ def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, s
         doc = transforms_header(und.width, und.height, und.K[0, 0], und.K[1, 1], und.K[0, 2], und.K[1, 2])
         doc["frames"] = frames
         atomic_write_json(stage / s / "transforms.json", doc)
+    points = _write_points(stage, sfm, unds, frame)
     scale_source = "--metres-per-unit" if metres_per_unit else "none (units are arbitrary)"
     if scale_info:
         scale_source = scale_info["source"]
@@ -296,6 +313,7 @@ def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, s
             for s in PHOTO_STATES
         },
         "relative_transforms": [{"src": "state1", "dst": "state2", "transforms": rel}],
+        "points": {"path": POINTS_FILE, "kind": "sfm background", "count": points},
     }
     atomic_write_json(stage / "scene.json", scene)
     extent = frame.bounds[1] - frame.bounds[0]

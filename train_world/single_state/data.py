@@ -25,6 +25,7 @@ import torch
 from PIL import Image
 
 from train_world.capture import load_blender, load_capture
+from train_world.capture.points import capture_points
 
 __all__ = ["TrainData", "load_eval_views", "load_training_data", "resolve_source"]
 
@@ -54,6 +55,8 @@ class TrainData:
     source: dict[str, Any] = field(default_factory=dict)
     table_bounds: np.ndarray | None = None
     silhouettes: torch.Tensor | None = None  # [V,H,W] alpha in [0,1] (NeRF-Blender RGBA), for the init
+    # the capture's sparse points (:mod:`train_world.capture.points`): [P,3] float64 and [P,3] colours in [0,1]
+    points: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def num_classes(self) -> int:
@@ -208,6 +211,7 @@ def load_training_data(path: str | Path, config) -> TrainData:
         poses=poses,
         source=_capture_source(p, cap, config.downscale),
         table_bounds=cap.table_bounds,
+        points=capture_points(p, cap.metadata),
     )
 
 

@@ -1,4 +1,5 @@
-"""Initial Gaussians: back-projected depth where a capture has it, else random points in the scene bounds.
+"""Initial Gaussians: back-projected depth where a capture has it, else random points in the scene bounds (led by
+the capture's sparse structure-from-motion points where it has them, :mod:`train_world.capture.points`).
 
 Also the scene extent (3DGS: 1.1 x the largest camera distance from the cameras' centroid) that scales the
 position learning rate and the clone/split threshold.

@@ -148,6 +148,13 @@ class Trainer:
                     )
             else:
                 pts, cols, ids = points_in_bounds(bounds, p.num_init_points, self.rng)
+            if d.points is not None and len(d.points[0]):  # the capture's sparse points lead, as in 3DGS
+                sp, sc = d.points
+                sp, sc = sp[: p.num_init_points], sc[: p.num_init_points]
+                rest = p.num_init_points - len(sp)
+                pts = np.concatenate([sp, pts[:rest]])
+                cols = np.concatenate([sc.astype(np.float64), cols[:rest]])
+                ids = np.concatenate([np.zeros(len(sp), np.int64), ids[:rest]])
         field, codes = initial_field(
             pts,
             cols,

@@ -118,8 +118,9 @@ def _step(
         return float(old["wall_s"]), int(old["peak_rss"])
     wall, rss = _run(cmd, d / f"{name}.log")
     ran.append(name)
+    steps = json.loads(record.read_text()) if record.is_file() else {}  # as it is now, not before the run
     steps[name] = {"cmd": cmd[1:], "wall_s": wall, "peak_rss": rss}
-    tmp = record.with_suffix(".tmp")
+    tmp = record.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(steps, indent=1))
     os.replace(tmp, record)
     return wall, rss

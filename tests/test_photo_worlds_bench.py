@@ -62,11 +62,17 @@ def test_photo_worlds_quick(tmp_path):
     assert again["photo"]["psnr"] == pytest.approx(s["photo"]["psnr_unaligned"], abs=1e-6)
     assert "gap_db_unaligned" not in again
     # without the capture's output, the capture and the photo world run again; the reference stays
-    shutil.rmtree(tmp_path / "work" / "four_mixed" / "est")
+    d = tmp_path / "work" / "four_mixed"
+    before = {k: v["wall_s"] for k, v in json.loads((d / "steps.json").read_text()).items()}
+    mtimes = {w: (d / w).stat().st_mtime_ns for w in ("photo.dsgworld", "reference.dsgworld")}
+    shutil.rmtree(d / "est")
     assert main([*args, "--work", str(tmp_path / "work"), "--align-views", "0"]) == 0
-    third = json.loads(out.read_text())["scenes"]["four_mixed"]
-    assert third["reference_train_s"] == s["reference_train_s"] and third["train_s"] != s["train_s"]
-    assert (tmp_path / "work" / "four_mixed" / "est" / "scene.json").is_file()
+    after = {k: v["wall_s"] for k, v in json.loads((d / "steps.json").read_text()).items()}
+    assert after["train_reference"] == before["train_reference"] and after["synth"] == before["synth"]
+    assert after["capture"] != before["capture"] and after["train"] != before["train"]  # timed afresh
+    assert (d / "reference.dsgworld").stat().st_mtime_ns == mtimes["reference.dsgworld"]
+    assert (d / "photo.dsgworld").stat().st_mtime_ns != mtimes["photo.dsgworld"]
+    assert (d / "est" / "scene.json").is_file()
 
 
 def test_photo_worlds_refuses_unknown_scenes(tmp_path, capsys):

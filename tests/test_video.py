@@ -131,7 +131,7 @@ def test_demo_writes_a_gif_of_its_episode(tmp_path, capsys):
 
 def test_eval_grid_has_column_and_row_labels():
     pytest.importorskip("torch")
-    from train_world.eval.evaluate import _grid
+    from train_world.eval.report_files import grid as _grid
 
     rows = [[np.full((32, 32, 3), 90 + 40 * j, np.uint8) for j in range(3)] for _ in range(2)]
     plain = _grid(rows)

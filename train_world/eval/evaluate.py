@@ -54,6 +54,7 @@ from train_world.capture.format import atomic_write_bytes, atomic_write_json, en
 from train_world.eval.frames import FrameAlignment, motion_errors
 from train_world.eval.metrics import mask_iou, psnr, psnr_from_mse, ssim
 from train_world.eval.regions import RegionErrors, capture_coverage, combine
+from train_world.eval.report_files import fmt, grid, markdown, region_lines, u8
 from train_world.eval.view_align import ViewAlignment, align_views
 from train_world.single_state.data import load_eval_views
 
@@ -125,53 +126,6 @@ def render_gaussians(
         rgbs.append(out[0, ..., :3].numpy())
         feats.append(out[0, ..., 3:].numpy())
     return np.stack(rgbs), np.stack(feats)
-
-
-def _u8(img: np.ndarray) -> np.ndarray:
-    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
-
-
-def _grid(
-    rows: list[list[np.ndarray]],
-    col_labels: list[str] | None = None,
-    row_labels: list[str] | None = None,
-) -> np.ndarray:
-    """Tiles ``rows[i][j]`` (equal sizes) on white with 2 px borders; ``col_labels`` above the columns and
-    ``row_labels`` (lines split at ``\\n``) left of the rows, in black (pillow's default font); a column or the
-    label column is as wide as its widest label."""
-    from PIL import Image, ImageDraw, ImageFont
-
-    pad = 2
-    h, w = rows[0][0].shape[:2]
-    ncol = max(len(r) for r in rows)
-    font = ImageFont.load_default()
-    draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    size = lambda t: draw.multiline_textbbox((0, 0), t, font=font)[2:]  # noqa: E731
-    cols = [
-        max([w] + ([size(col_labels[j])[0] + 2 * pad] if col_labels and j < len(col_labels) else []))
-        for j in range(ncol)
-    ]
-    left = max([size(t)[0] + 2 * pad for t in row_labels or []], default=0)
-    top = max([size(t)[1] + 2 * pad for t in col_labels or []], default=0)
-    rh = max([h] + [size(t)[1] for t in row_labels or []])
-    x0 = np.cumsum([left + pad] + [c + pad for c in cols[:-1]])
-    out = np.full((top + len(rows) * (rh + pad) + pad, int(x0[-1]) + cols[-1] + pad, 3), 255, np.uint8)
-    for i, r in enumerate(rows):
-        y = top + pad + i * (rh + pad) + (rh - h) // 2
-        for j, img in enumerate(r):
-            x = int(x0[j]) + (cols[j] - w) // 2
-            out[y : y + h, x : x + w] = img
-    if not (col_labels or row_labels):
-        return out
-    im = Image.fromarray(out)
-    d = ImageDraw.Draw(im)
-    for j, t in enumerate((col_labels or [])[:ncol]):
-        d.text((int(x0[j]) + (cols[j] - size(t)[0]) // 2, pad), t, fill=(0, 0, 0), font=font)
-    for i, t in enumerate((row_labels or [])[: len(rows)]):
-        d.multiline_text(
-            (pad, top + pad + i * (rh + pad) + (rh - size(t)[1]) // 2), t, fill=(0, 0, 0), font=font
-        )
-    return np.asarray(im)
 
 
 def _poses_for(
@@ -279,9 +233,9 @@ def evaluate(
         if aligned is not None:
             entry["psnr_unaligned"] = psnr_from_mse(aligned[i].mse_before)
         row = [
-            _u8(gt_imgs[i]),
-            _u8(ours),
-            _u8(np.abs(ours - gt_imgs[i]).mean(-1, keepdims=True).repeat(3, -1) * 4),
+            u8(gt_imgs[i]),
+            u8(ours),
+            u8(np.abs(ours - gt_imgs[i]).mean(-1, keepdims=True).repeat(3, -1) * 4),
         ]
         if regions is not None:
             regions.add(ours, gt_imgs[i], gt_cls[i], None if seen is None else seen[i])
@@ -338,9 +292,9 @@ def evaluate(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "report.json", report)
-    atomic_write_bytes(out / "report.md", _markdown(report).encode("utf-8"))
+    atomic_write_bytes(out / "report.md", markdown(report).encode("utf-8"))
     cols = ["ground truth", "ours", "error"] + (["GT mask", "our mask"] if len(rows[0]) > 3 else [])
-    atomic_write_bytes(out / "grid.png", encode_png(_grid(rows, cols, row_labels)))
+    atomic_write_bytes(out / "grid.png", encode_png(grid(rows, cols, row_labels)))
     return report
 
 
@@ -416,12 +370,10 @@ def evaluate_test_states(
     ]
     for s, v in per_state.items():
         m = v["mean"]
-        lines.append(
-            f"| {s} | {v['views']} | {_fmt(m['psnr'])} | {_fmt(m['ssim'])} | {_fmt(m['mask_iou'])} |"
-        )
+        lines.append(f"| {s} | {v['views']} | {fmt(m['psnr'])} | {fmt(m['ssim'])} | {fmt(m['mask_iou'])} |")
     lines.append(
-        f"| **mean** | {report['views']} | **{_fmt(mean['psnr'])}** | **{_fmt(mean['ssim'])}** | "
-        f"**{_fmt(mean['mask_iou'])}** |"
+        f"| **mean** | {report['views']} | **{fmt(mean['psnr'])}** | **{fmt(mean['ssim'])}** | "
+        f"**{fmt(mean['mask_iou'])}** |"
     )
     if "motion_errors" in report:
         me = report["motion_errors"]
@@ -437,66 +389,11 @@ def evaluate_test_states(
         ]
     if unaligned:
         u = float(np.mean(unaligned))
-        lines += ["", f"Each camera aligned to the world first; unaligned mean PSNR {_fmt(u)} dB."]
-    lines += _region_lines(report.get("error_by_region"))
+        lines += ["", f"Each camera aligned to the world first; unaligned mean PSNR {fmt(u)} dB."]
+    lines += region_lines(report.get("error_by_region"))
     atomic_write_json(out / "report.json", report)
     atomic_write_bytes(out / "report.md", ("\n".join(lines) + "\n").encode("utf-8"))
     return report
-
-
-def _fmt(v) -> str:
-    return "-" if v is None else f"{v:.4f}" if isinstance(v, float) and abs(v) < 2 else f"{v:.2f}"
-
-
-def _markdown(r: dict[str, Any]) -> str:
-    lines = [
-        f"# Evaluation of `{Path(r['world']).name}` on `{r['state']}`",
-        "",
-        f"{r['views']} views at {r['image_size'][0]}x{r['image_size'][1]}, {r['num_gaussians']} Gaussians.",
-        "",
-        "| view | PSNR (dB) | SSIM | mask IoU |",
-        "| --- | --- | --- | --- |",
-    ]
-    for v in r["per_view"]:
-        lines.append(
-            f"| {v['view']} | {_fmt(v['psnr'])} | {_fmt(v['ssim'])} | {_fmt(v.get('mean_mask_iou'))} |"
-        )
-    m = r["mean"]
-    lines.append(f"| **mean** | **{_fmt(m['psnr'])}** | **{_fmt(m['ssim'])}** | **{_fmt(m['mask_iou'])}** |")
-    if "view_alignment" in r:
-        va = r["view_alignment"]
-        lines += [
-            "",
-            f"Each camera aligned to the world first ({va['kept']} of {r['views']} moved, rotation rms "
-            f"{va['rotation_deg_rms']:.3f} deg); unaligned mean PSNR {_fmt(r['mean_unaligned']['psnr'])} dB.",
-        ]
-    if r["object_iou"]:
-        lines += ["", "| object | IoU |", "| --- | --- |"]
-        lines += [f"| {k} | {_fmt(v)} |" for k, v in r["object_iou"].items()]
-    lines += _region_lines(r.get("error_by_region"))
-    return "\n".join(lines) + "\n"
-
-
-def _region_lines(by_region: dict[str, Any] | None) -> list[str]:
-    """Markdown table of :mod:`.regions`' error breakdown (nothing without one)."""
-    if not by_region:
-        return []
-    seen = by_region.get("mean_psnr_seen")
-    lines = [
-        "",
-        f"Error by region (outline: within {by_region['outline_radius']} px of an id change):",
-        "",
-        "| region | pixels | PSNR (dB) | share of the squared error |",
-        "| --- | --- | --- | --- |",
-    ]
-    rows = [*by_region["regions"].items(), *((f"object {n}", e) for n, e in by_region["per_object"].items())]
-    for name, e in rows:
-        share = "-" if e["pixel_share"] is None else f"{100 * e['pixel_share']:.1f} %"
-        err = "-" if e["error_share"] is None else f"{100 * e['error_share']:.1f} %"
-        lines.append(f"| {name} | {share} | {_fmt(e['psnr'])} | {err} |")
-    if seen is not None:
-        lines += ["", f"Mean PSNR of the views without their unseen pixels: {_fmt(seen)} dB."]
-    return lines
 
 
 def default_state(world_path: str | Path, capture: str | Path) -> str | None:

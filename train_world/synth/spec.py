@@ -29,6 +29,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from dsg_gym.assets import scene_names, scenes_dir
+from train_world.synth import spec_values as check
+from train_world.synth.spec_values import SpecError
 from train_world.synth.textures import PATTERNS
 
 __all__ = [
@@ -52,10 +54,6 @@ __all__ = [
 SHAPE_TYPES = ("box", "cylinder", "sphere", "capsule", "mesh")
 MESH_KINDS = ("prism", "frustum", "gem")
 RESTS = ("upright", "side")
-
-
-class SpecError(ValueError):
-    """A scene description is malformed; the message names the file and the field."""
 
 
 @dataclass(frozen=True)
@@ -201,49 +199,11 @@ class SceneSpec:
 
 
 # ----------------------------------------------------------------------------------------------- parsing
-def _fail(src: str, where: str, msg: str) -> SpecError:
-    return SpecError(f"{src}: {where}: {msg}")
-
-
-def _check_keys(d: dict, allowed, src: str, where: str) -> None:
-    if not isinstance(d, dict):
-        raise _fail(src, where, f"expected an object, got {type(d).__name__}")
-    extra = sorted(set(d) - set(allowed))
-    if extra:
-        raise _fail(src, where, f"unknown keys {extra}; allowed {sorted(allowed)}")
-
-
-def _floats(v, n: int, src: str, where: str) -> tuple[float, ...]:
-    if not isinstance(v, list | tuple) or len(v) != n or not all(isinstance(x, int | float) for x in v):
-        raise _fail(src, where, f"expected {n} numbers, got {v!r}")
-    return tuple(float(x) for x in v)
-
-
-def _pos(v, src: str, where: str) -> float:
-    if not isinstance(v, int | float) or not v > 0:
-        raise _fail(src, where, f"expected a positive number, got {v!r}")
-    return float(v)
-
-
-def _rgba(v, src: str, where: str) -> tuple[float, float, float, float]:
-    if isinstance(v, list | tuple) and len(v) == 3:
-        v = [*v, 1.0]
-    return _floats(v, 4, src, where)  # type: ignore[return-value]
-
-
-def _simple(cls, d: dict, src: str, where: str, conv: dict):
-    """Build a flat dataclass from ``d`` converting each present key with ``conv[key](value, src,
-    where.key)``."""
-    _check_keys(d, conv, src, where)
-    kw = {k: conv[k](v, src, f"{where}.{k}") for k, v in d.items()}
-    return cls(**kw)
-
-
 def _shape(d: dict, src: str, where: str) -> Shape:
-    _check_keys(d, {f.name for f in fields(Shape)}, src, where)
+    check.check_keys(d, {f.name for f in fields(Shape)}, src, where)
     t = d.get("type")
     if t not in SHAPE_TYPES:
-        raise _fail(src, f"{where}.type", f"expected one of {SHAPE_TYPES}, got {t!r}")
+        raise check.fail(src, f"{where}.type", f"expected one of {SHAPE_TYPES}, got {t!r}")
     kw: dict = {"type": t}
     need = {
         "box": ("extents",),
@@ -254,49 +214,49 @@ def _shape(d: dict, src: str, where: str) -> Shape:
     }[t]
     for k in need:
         if k not in d:
-            raise _fail(src, where, f"shape {t!r} needs {k!r}")
+            raise check.fail(src, where, f"shape {t!r} needs {k!r}")
     if "extents" in d:
-        ext = _floats(d["extents"], 3, src, f"{where}.extents")
+        ext = check.floats(d["extents"], 3, src, f"{where}.extents")
         if min(ext) <= 0:
-            raise _fail(src, f"{where}.extents", "must be positive")
+            raise check.fail(src, f"{where}.extents", "must be positive")
         kw["extents"] = ext
     for k in ("radius", "height"):
         if k in d:
-            kw[k] = _pos(d[k], src, f"{where}.{k}")
+            kw[k] = check.positive(d[k], src, f"{where}.{k}")
     if "top_radius" in d:
         if not isinstance(d["top_radius"], int | float) or d["top_radius"] < 0:
-            raise _fail(src, f"{where}.top_radius", "expected a number >= 0")
+            raise check.fail(src, f"{where}.top_radius", "expected a number >= 0")
         kw["top_radius"] = float(d["top_radius"])
     for k in ("sides", "seed"):
         if k in d:
             if not isinstance(d[k], int):
-                raise _fail(src, f"{where}.{k}", f"expected an integer, got {d[k]!r}")
+                raise check.fail(src, f"{where}.{k}", f"expected an integer, got {d[k]!r}")
             kw[k] = d[k]
     if t == "capsule" and kw["height"] < 2 * kw["radius"]:
-        raise _fail(src, where, "capsule height (tip to tip) must be at least 2 * radius")
+        raise check.fail(src, where, "capsule height (tip to tip) must be at least 2 * radius")
     if t == "mesh":
         if d["mesh"] not in MESH_KINDS:
-            raise _fail(src, f"{where}.mesh", f"expected one of {MESH_KINDS}, got {d['mesh']!r}")
+            raise check.fail(src, f"{where}.mesh", f"expected one of {MESH_KINDS}, got {d['mesh']!r}")
         kw["mesh"] = d["mesh"]
         kw.setdefault("sides", 6 if d["mesh"] != "gem" else 14)
         if kw["sides"] < 3:
-            raise _fail(src, f"{where}.sides", "needs at least 3")
+            raise check.fail(src, f"{where}.sides", "needs at least 3")
     return Shape(**kw)
 
 
 def _appearance(d: dict, src: str, where: str) -> Appearance:
     kw: dict = {}
     if "rgba" in d:
-        kw["rgba"] = _rgba(d["rgba"], src, f"{where}.rgba")
+        kw["rgba"] = check.rgba(d["rgba"], src, f"{where}.rgba")
     if "pattern" in d:
         if d["pattern"] not in PATTERNS:
-            raise _fail(src, f"{where}.pattern", f"expected one of {PATTERNS}, got {d['pattern']!r}")
+            raise check.fail(src, f"{where}.pattern", f"expected one of {PATTERNS}, got {d['pattern']!r}")
         kw["pattern"] = d["pattern"]
     if "color2" in d:
-        kw["color2"] = _floats(d["color2"], 3, src, f"{where}.color2")
+        kw["color2"] = check.floats(d["color2"], 3, src, f"{where}.color2")
     if "cells" in d:
         if not isinstance(d["cells"], int) or d["cells"] < 1:
-            raise _fail(src, f"{where}.cells", "expected a positive integer")
+            raise check.fail(src, f"{where}.cells", "expected a positive integer")
         kw["cells"] = d["cells"]
     return Appearance(**kw)
 
@@ -306,14 +266,14 @@ _APPEARANCE_KEYS = ("rgba", "pattern", "color2", "cells")
 
 def _rest(v, src, where) -> str:
     if v not in RESTS:
-        raise _fail(src, where, f"expected one of {RESTS}, got {v!r}")
+        raise check.fail(src, where, f"expected one of {RESTS}, got {v!r}")
     return v
 
 
 def _object(d: dict, src: str, where: str) -> ObjectSpec:
-    _check_keys(d, ("name", "shape", "rest", *_APPEARANCE_KEYS), src, where)
+    check.check_keys(d, ("name", "shape", "rest", *_APPEARANCE_KEYS), src, where)
     if not isinstance(d.get("name"), str) or not d["name"]:
-        raise _fail(src, f"{where}.name", "expected a non-empty string")
+        raise check.fail(src, f"{where}.name", "expected a non-empty string")
     return ObjectSpec(
         name=d["name"],
         shape=_shape(d.get("shape"), src, f"{where}.shape"),
@@ -323,68 +283,62 @@ def _object(d: dict, src: str, where: str) -> ObjectSpec:
 
 
 def _prop(d: dict, src: str, where: str) -> PropSpec:
-    _check_keys(d, ("name", "shape", "rest", "position", "yaw_deg", "on", *_APPEARANCE_KEYS), src, where)
+    check.check_keys(d, ("name", "shape", "rest", "position", "yaw_deg", "on", *_APPEARANCE_KEYS), src, where)
     on = d.get("on", "floor")
     if on not in ("table", "floor"):
-        raise _fail(src, f"{where}.on", f"expected 'table' or 'floor', got {on!r}")
+        raise check.fail(src, f"{where}.on", f"expected 'table' or 'floor', got {on!r}")
     return PropSpec(
         name=str(d.get("name", where)),
         shape=_shape(d.get("shape"), src, f"{where}.shape"),
         appearance=_appearance(d, src, where),
         rest=_rest(d.get("rest", "upright"), src, where),
-        position=_floats(d.get("position", [0, 0]), 2, src, f"{where}.position"),
+        position=check.floats(d.get("position", [0, 0]), 2, src, f"{where}.position"),
         yaw_deg=float(d.get("yaw_deg", 0.0)),
         on=on,
     )
 
 
 def _wall(d: dict, src: str, where: str) -> WallSpec:
-    _check_keys(d, ("name", "center", "extents", *_APPEARANCE_KEYS), src, where)
+    check.check_keys(d, ("name", "center", "extents", *_APPEARANCE_KEYS), src, where)
     return WallSpec(
         name=str(d.get("name", where)),
-        center=_floats(d.get("center"), 3, src, f"{where}.center"),
-        extents=_floats(d.get("extents"), 3, src, f"{where}.extents"),
+        center=check.floats(d.get("center"), 3, src, f"{where}.center"),
+        extents=check.floats(d.get("extents"), 3, src, f"{where}.extents"),
         appearance=_appearance(d, src, where),
     )
 
 
 def _light(d: dict, src: str, where: str) -> LightSpec:
-    return _simple(
+    return check.flat(
         LightSpec,
         d,
         src,
         where,
         {
-            "pos": lambda v, s, w: _floats(v, 3, s, w),
-            "dir": lambda v, s, w: _floats(v, 3, s, w),
-            "diffuse": lambda v, s, w: _floats(v, 3, s, w),
+            "pos": lambda v, s, w: check.floats(v, 3, s, w),
+            "dir": lambda v, s, w: check.floats(v, 3, s, w),
+            "diffuse": lambda v, s, w: check.floats(v, 3, s, w),
             "directional": lambda v, s, w: bool(v),
         },
     )
 
 
-def _num(v, src, where) -> float:
-    if not isinstance(v, int | float):
-        raise _fail(src, where, f"expected a number, got {v!r}")
-    return float(v)
-
-
 def _orbit(d: dict, src: str, where: str, base: OrbitSpec) -> OrbitSpec:
-    conv = {f.name: _num for f in fields(OrbitSpec)}
-    conv["target"] = lambda v, s, w: _floats(v, 3, s, w)
-    o = _simple(lambda **kw: kw, d, src, where, conv)
+    conv = {f.name: check.number for f in fields(OrbitSpec)}
+    conv["target"] = lambda v, s, w: check.floats(v, 3, s, w)
+    o = check.flat(lambda **kw: kw, d, src, where, conv)
     merged = {f.name: getattr(base, f.name) for f in fields(OrbitSpec)} | o
     if merged["radius"] <= 0:
-        raise _fail(src, f"{where}.radius", "must be positive")
+        raise check.fail(src, f"{where}.radius", "must be positive")
     return OrbitSpec(**merged)
 
 
 def _cameras(d: dict, src: str, where: str) -> CameraSpec:
-    _check_keys(d, ("fovy_deg", "train", "test"), src, where)
+    check.check_keys(d, ("fovy_deg", "train", "test"), src, where)
     base = CameraSpec()
     fovy = float(d.get("fovy_deg", base.fovy_deg))
     if not 5.0 < fovy < 150.0:
-        raise _fail(src, f"{where}.fovy_deg", f"expected 5..150 degrees, got {fovy}")
+        raise check.fail(src, f"{where}.fovy_deg", f"expected 5..150 degrees, got {fovy}")
     return CameraSpec(
         fovy_deg=fovy,
         train=_orbit(d.get("train", {}), src, f"{where}.train", base.train),
@@ -393,26 +347,26 @@ def _cameras(d: dict, src: str, where: str) -> CameraSpec:
 
 
 def _surface(d: dict, src: str, where: str) -> SurfaceSpec:
-    _check_keys(d, ("kind", "size", "height", "thickness", "texture"), src, where)
+    check.check_keys(d, ("kind", "size", "height", "thickness", "texture"), src, where)
     kw: dict = {}
     if "kind" in d:
         if d["kind"] not in ("table", "floor"):
-            raise _fail(src, f"{where}.kind", f"expected 'table' or 'floor', got {d['kind']!r}")
+            raise check.fail(src, f"{where}.kind", f"expected 'table' or 'floor', got {d['kind']!r}")
         kw["kind"] = d["kind"]
     if "size" in d:
-        kw["size"] = _floats(d["size"], 2, src, f"{where}.size")
+        kw["size"] = check.floats(d["size"], 2, src, f"{where}.size")
     for k in ("height", "thickness"):
         if k in d:
-            kw[k] = _pos(d[k], src, f"{where}.{k}")
+            kw[k] = check.positive(d[k], src, f"{where}.{k}")
     tex = d.get("texture", {})
-    _check_keys(tex, ("cells", "color1", "color2", "noise"), src, f"{where}.texture")
+    check.check_keys(tex, ("cells", "color1", "color2", "noise"), src, f"{where}.texture")
     if "cells" in tex:
-        kw["cells"] = tuple(int(c) for c in _floats(tex["cells"], 2, src, f"{where}.texture.cells"))
+        kw["cells"] = tuple(int(c) for c in check.floats(tex["cells"], 2, src, f"{where}.texture.cells"))
     for k in ("color1", "color2"):
         if k in tex:
-            kw[k] = _floats(tex[k], 3, src, f"{where}.texture.{k}")
+            kw[k] = check.floats(tex[k], 3, src, f"{where}.texture.{k}")
     if "noise" in tex:
-        kw["noise"] = _num(tex["noise"], src, f"{where}.texture.noise")
+        kw["noise"] = check.number(tex["noise"], src, f"{where}.texture.noise")
     return SurfaceSpec(**kw)
 
 
@@ -432,29 +386,32 @@ def scene_from_dict(d: dict, source: str = "<dict>") -> SceneSpec:
         "cameras",
         "placement",
     )
-    _check_keys(d, top, source, "scene")
+    check.check_keys(d, top, source, "scene")
     name = d.get("name")
     if not isinstance(name, str) or not name:
-        raise _fail(source, "name", "expected a non-empty string")
+        raise check.fail(source, "name", "expected a non-empty string")
     objs = d.get("objects")
     if not isinstance(objs, list) or not 1 <= len(objs) <= 255:
-        raise _fail(source, "objects", "expected a list of 1..255 objects")
+        raise check.fail(source, "objects", "expected a list of 1..255 objects")
     objects = tuple(_object(o, source, f"objects[{i}]") for i, o in enumerate(objs))
     names = [o.name for o in objects]
     if len(set(names)) != len(names):
-        raise _fail(source, "objects", f"object names must be unique, got {names}")
+        raise check.fail(source, "objects", f"object names must be unique, got {names}")
     floor = d.get("floor", {})
-    _check_keys(floor, ("color1", "color2", "cells"), source, "floor")
+    check.check_keys(floor, ("color1", "color2", "cells"), source, "floor")
     floor_spec = FloorSpec(
-        **{k: (_floats(v, 3, source, f"floor.{k}") if k != "cells" else int(v)) for k, v in floor.items()}
+        **{
+            k: (check.floats(v, 3, source, f"floor.{k}") if k != "cells" else int(v))
+            for k, v in floor.items()
+        }
     )
-    placement = _simple(
+    placement = check.flat(
         PlacementSpec,
         d.get("placement", {}),
         source,
         "placement",
         {
-            f.name: (_pos if f.name != "max_tries" else (lambda v, s, w: int(v)))
+            f.name: (check.positive if f.name != "max_tries" else (lambda v, s, w: int(v)))
             for f in fields(PlacementSpec)
         },
     )

@@ -216,7 +216,9 @@ def _grid_png(
 ):
     from dsg_gym.world import load_world
     from train_world.capture.format import atomic_write_bytes, encode_png
-    from train_world.eval.evaluate import _grid, _poses_for, _u8, render_gaussians
+    from train_world.eval.evaluate import _poses_for, render_gaussians
+    from train_world.eval.report_files import grid as _grid
+    from train_world.eval.report_files import u8 as _u8
     from train_world.single_state.data import load_eval_views
 
     renders = {}

@@ -1,5 +1,8 @@
-"""Initial Gaussians: back-projected depth where a capture has it, else random points in the scene bounds (led by
-the capture's sparse structure-from-motion points where it has them, :mod:`train_world.capture.points`).
+"""Initial Gaussians: back-projected depth where a capture has it, else points placed from what the capture does
+know (led by the capture's sparse structure-from-motion points where it has them, :mod:`train_world.capture.points`):
+random points carved by silhouettes (NeRF-Blender RGBA data), points on the table and inside each object's visual
+hull (a tabletop capture with object masks, as ``dsg-capture`` makes from photos; :func:`tabletop_points`), or
+random points in the scene bounds.
 
 Also the scene extent (3DGS: 1.1 x the largest camera distance from the cameras' centroid) that scales the
 position learning rate and the clone/split threshold.
@@ -21,7 +24,12 @@ __all__ = [
     "points_in_bounds",
     "scene_bounds_from_cameras",
     "scene_extent",
+    "tabletop_points",
 ]
+
+#: :func:`tabletop_points`: the share of the point budget on the table top, and how many candidates per budgeted
+#: point are tried against the objects' masks
+TABLE_SHARE, HULL_CANDIDATES = 0.9, 6
 
 
 def camera_centres(viewmats: torch.Tensor) -> np.ndarray:
@@ -105,6 +113,90 @@ def points_in_bounds(
     return P, rng.random((n, 3)), np.zeros(n, np.int64)
 
 
+def _pixels(points: np.ndarray, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int):
+    """The pixel ``(u [P], v [P])`` int64 each point falls in and ``ok [P]``: in front of the camera and inside
+    the image."""
+    vm, Kd = viewmat.double().numpy(), K.double().numpy()
+    cam = points @ vm[:3, :3].T + vm[:3, 3]
+    z = cam[:, 2]
+    ok = z > 1e-6
+    u = np.floor(Kd[0, 0] * cam[:, 0] / np.where(ok, z, 1) + Kd[0, 2]).astype(np.int64)
+    v = np.floor(Kd[1, 1] * cam[:, 1] / np.where(ok, z, 1) + Kd[1, 2]).astype(np.int64)
+    ok &= (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    return u, v, ok
+
+
+def _mean_colours(points, images, classes, viewmats, Ks, want) -> tuple[np.ndarray, np.ndarray]:
+    """Per point, the mean colour ``[P,3]`` of the pixels it falls in whose class is ``want`` ``[P]``, and how
+    many there were ``[P]``."""
+    V, H, W = classes.shape
+    total = np.zeros((len(points), 3))
+    count = np.zeros(len(points), np.int64)
+    for i in range(V):
+        u, v, ok = _pixels(points, viewmats[i], Ks[i], W, H)
+        idx = np.flatnonzero(ok)
+        idx = idx[classes[i].numpy()[v[idx], u[idx]] == want[idx]]
+        total[idx] += images[i].numpy()[v[idx], u[idx]]
+        count[idx] += 1
+    return total / np.maximum(count, 1)[:, None], count
+
+
+def table_points(
+    box: np.ndarray, n: int, images, classes, viewmats, Ks, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Up to ``n`` points uniform on the table top (the plane ``z = box[0, 2]`` over the box's x-y extent), each
+    coloured by the mean of the training pixels it falls in where no object covers it (class 0 of ``classes
+    [V,H,W]``); points that no view sees uncovered are dropped. Returns points, colours and class ids (0)."""
+    lo, hi = np.asarray(box, dtype=np.float64)
+    P = np.column_stack([lo[:2] + (hi[:2] - lo[:2]) * rng.random((n, 2)), np.full(n, lo[2])])
+    cols, count = _mean_colours(P, images, classes, viewmats, Ks, np.zeros(n, np.int64))
+    keep = count > 0
+    return P[keep], cols[keep], np.zeros(int(keep.sum()), np.int64)
+
+
+def object_hull_points(
+    box: np.ndarray, candidates: int, images, classes, viewmats, Ks, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points inside the objects' visual hulls: of ``candidates`` uniform in ``box``, those seen in at least 3
+    views, on the background in at most a tenth of them and on one object's class in at least half (the rest:
+    other objects in front), with that class as id and the mean colour of those pixels."""
+    lo, hi = np.asarray(box, dtype=np.float64)
+    P = lo + (hi - lo) * rng.random((candidates, 3))
+    V, H, W = classes.shape
+    num_classes = int(classes.max()) + 1
+    votes = np.zeros((candidates, num_classes), np.int64)
+    seen = np.zeros(candidates, np.int64)
+    for i in range(V):
+        u, v, ok = _pixels(P, viewmats[i], Ks[i], W, H)
+        idx = np.flatnonzero(ok)
+        seen[idx] += 1
+        np.add.at(votes, (idx, classes[i].numpy()[v[idx], u[idx]]), 1)
+    if num_classes < 2:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    k = votes[:, 1:].argmax(axis=1) + 1
+    hull = (seen >= 3) & (votes[:, 0] <= 0.1 * seen) & (2 * votes[np.arange(candidates), k] >= seen)
+    P, k = P[hull], k[hull]
+    cols, count = _mean_colours(P, images, classes, viewmats, Ks, k)
+    keep = count > 0
+    return P[keep], cols[keep], k[keep]
+
+
+def tabletop_points(
+    box: np.ndarray, n: int, images, classes, viewmats, Ks, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Initial points of a tabletop capture without depth but with object masks (``dsg-capture``'s): a
+    :data:`TABLE_SHARE` of the budget ``n`` on the table top (:func:`table_points`), then the objects' visual
+    hulls (:func:`object_hull_points`, from ``HULL_CANDIDATES * n`` candidates in ``box``, the table up to half
+    its width in height). ``images [V,H,W,3]``, ``classes [V,H,W]`` (0: background), ``viewmats``, ``Ks``: the
+    training views. No random points: above the table everything that moves has a mask, and the static rest is
+    the table and what the capture's sparse points cover (which lead, :class:`~.trainer.Trainer`)."""
+    parts = (
+        table_points(box, int(TABLE_SHARE * n), images, classes, viewmats, Ks, rng),
+        object_hull_points(box, HULL_CANDIDATES * n, images, classes, viewmats, Ks, rng),
+    )
+    return tuple(np.concatenate([p[j] for p in parts]) for j in range(3))
+
+
 def carve_silhouettes(
     points: np.ndarray,
     silhouettes: torch.Tensor,
@@ -118,13 +210,7 @@ def carve_silhouettes(
     inside = np.zeros(len(points), np.int64)
     seen = np.zeros(len(points), np.int64)
     for i in range(V):
-        vm, K = viewmats[i].double().numpy(), Ks[i].double().numpy()
-        cam = points @ vm[:3, :3].T + vm[:3, 3]
-        z = cam[:, 2]
-        ok = z > 1e-6
-        u = np.floor(K[0, 0] * cam[:, 0] / np.where(ok, z, 1) + K[0, 2]).astype(np.int64)
-        v = np.floor(K[1, 1] * cam[:, 1] / np.where(ok, z, 1) + K[1, 2]).astype(np.int64)
-        ok &= (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        u, v, ok = _pixels(points, viewmats[i], Ks[i], W, H)
         sil = silhouettes[i].numpy() > 0.5
         seen += ok
         inside[ok] += sil[v[ok], u[ok]]

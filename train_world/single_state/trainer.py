@@ -36,6 +36,7 @@ from train_world.single_state.init import (
     points_in_bounds,
     scene_bounds_from_cameras,
     scene_extent,
+    tabletop_points,
 )
 from train_world.single_state.losses import (
     depth_loss,
@@ -146,6 +147,10 @@ class Trainer:
                         cols[: p.num_init_points],
                         ids[: p.num_init_points],
                     )
+            elif d.table_bounds is not None and self.has_masks:  # tabletop from photos: table, hulls, random
+                pts, cols, ids = tabletop_points(
+                    bounds, p.num_init_points, d.images, d.classes, d.viewmats, d.Ks, self.rng
+                )
             else:
                 pts, cols, ids = points_in_bounds(bounds, p.num_init_points, self.rng)
             if d.points is not None and len(d.points[0]):  # the capture's sparse points lead, as in 3DGS

@@ -1,0 +1,89 @@
+"""Initial points of a tabletop capture without depth but with object masks (train_world.single_state.init.
+tabletop_points, what training on a dsg-capture capture starts from): points on the table top coloured from the
+pixels that see it, points inside each object's visual hull with that object's id, and the trainer using them."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from _captures import tiny_capture
+
+from train_world.single_state.data import load_training_data
+from train_world.single_state.init import (
+    TABLE_SHARE,
+    _pixels,
+    object_hull_points,
+    table_points,
+    tabletop_points,
+)
+from train_world.single_state.presets import TrainConfig, get_preset
+from train_world.single_state.trainer import Trainer
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    cap = tiny_capture(tmp_path_factory.mktemp("tabletop"), "four_mixed", size=64, views=16)
+    cfg = TrainConfig(preset=get_preset("quick"), state="state1", holdout_every=0)
+    d = load_training_data(cap, cfg)
+    assert d.depths is not None and d.classes is not None and d.table_bounds is not None
+    scene = json.loads((cap / "scene.json").read_text())
+    centres = np.array([p["pose"] for p in scene["states"]["state1"]["object_poses"]])[:, :3, 3]
+    return dataclasses.replace(d, depths=None), cfg, centres  # as a capture from photos: no depth
+
+
+def _box(d):
+    lo, hi = d.table_bounds.copy()
+    hi[2] = lo[2] + 0.5 * max(hi[0] - lo[0], hi[1] - lo[1])
+    return np.stack([lo, hi])
+
+
+def test_table_points_lie_on_the_top_and_take_the_colours_of_their_pixels(data):
+    d, _, _ = data
+    box = _box(d)
+    P, cols, ids = table_points(box, 4000, d.images, d.classes, d.viewmats, d.Ks, np.random.default_rng(0))
+    assert 0.5 * 4000 < len(P) <= 4000 and not ids.any()
+    assert np.all(P[:, 2] == box[0, 2])
+    assert np.all((P[:, :2] >= box[0, :2]) & (P[:, :2] <= box[1, :2]))
+    assert np.all((cols >= 0) & (cols <= 1))
+    # a point's colour follows the pixel it falls in (a mean over views, so not equal): strongly correlated
+    u, v, ok = _pixels(P, d.viewmats[0], d.Ks[0], d.width, d.height)
+    ok[ok] &= d.classes[0].numpy()[v[ok], u[ok]] == 0
+    px = d.images[0].numpy()[v[ok], u[ok]]
+    assert ok.sum() > 500
+    for ch in range(3):
+        assert np.corrcoef(px[:, ch], cols[ok, ch])[0, 1] > 0.6
+
+
+def test_hull_points_sit_in_their_object(data):
+    d, _, centres = data
+    box = _box(d)
+    P, cols, ids = object_hull_points(box, 60_000, d.images, d.classes, d.viewmats, d.Ks, np.random.default_rng(1))
+    assert set(np.unique(ids)) == set(range(1, len(centres) + 1))  # every object, never the background
+    dist = np.linalg.norm(P[:, None, :] - centres[None], axis=-1)  # [P, K]
+    assert np.all(dist.argmin(axis=1) + 1 == ids)  # nearest to its own object's origin
+    assert np.all(dist[np.arange(len(P)), ids - 1] < 0.12)
+    assert np.all((cols >= 0) & (cols <= 1)) and cols.std() > 0.05
+
+
+def test_tabletop_points_are_deterministic_and_within_the_budget(data):
+    d, _, _ = data
+    a = tabletop_points(_box(d), 3000, d.images, d.classes, d.viewmats, d.Ks, np.random.default_rng(2))
+    b = tabletop_points(_box(d), 3000, d.images, d.classes, d.viewmats, d.Ks, np.random.default_rng(2))
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    P, _, ids = a
+    assert len(P) <= 3000 and (P[:, 2] == 0).sum() <= TABLE_SHARE * 3000 and ids.max() >= 1
+
+
+def test_training_without_depth_starts_on_the_table_and_in_the_objects(data):
+    d, cfg, _ = data
+    t = Trainer(d, cfg)
+    means = t.field.means.detach().double().numpy()
+    assert len(means) <= t.preset.num_init_points
+    assert (means[:, 2] == 0.0).mean() > 0.4
+    # without masks: random points in the table box, as before
+    bare = Trainer(dataclasses.replace(d, classes=None), cfg)
+    m2 = bare.field.means.detach().double().numpy()
+    assert len(m2) == t.preset.num_init_points and (m2[:, 2] == 0.0).sum() == 0

@@ -30,6 +30,9 @@ __all__ = [
 #: :func:`tabletop_points`: the share of the point budget on the table top, and how many candidates per budgeted
 #: point are tried against the objects' masks
 TABLE_SHARE, HULL_CANDIDATES = 0.9, 6
+#: the tabletop start's budget is at most this share of the field's Gaussian cap: every start point lands on
+#: something seen, so few are pruned, and densification needs the rest of the cap for what the start misses
+CAP_SHARE = 0.25
 
 
 def camera_centres(viewmats: torch.Tensor) -> np.ndarray:

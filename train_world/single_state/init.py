@@ -29,10 +29,7 @@ __all__ = [
 
 #: :func:`tabletop_points`: the share of the point budget on the table top, and how many candidates per budgeted
 #: point are tried against the objects' masks
-TABLE_SHARE, HULL_CANDIDATES = 0.9, 6
-#: the tabletop start's budget is at most this share of the field's Gaussian cap: every start point lands on
-#: something seen, so few are pruned, and densification needs the rest of the cap for what the start misses
-CAP_SHARE = 0.25
+TABLE_SHARE, HULL_CANDIDATES = 0.1, 6
 
 
 def camera_centres(viewmats: torch.Tensor) -> np.ndarray:
@@ -190,13 +187,12 @@ def tabletop_points(
     """Initial points of a tabletop capture without depth but with object masks (``dsg-capture``'s): a
     :data:`TABLE_SHARE` of the budget ``n`` on the table top (:func:`table_points`), then the objects' visual
     hulls (:func:`object_hull_points`, from ``HULL_CANDIDATES * n`` candidates in ``box``, the table up to half
-    its width in height). ``images [V,H,W,3]``, ``classes [V,H,W]`` (0: background), ``viewmats``, ``Ks``: the
-    training views. No random points: above the table everything that moves has a mask, and the static rest is
-    the table and what the capture's sparse points cover (which lead, :class:`~.trainer.Trainer`)."""
-    parts = (
-        table_points(box, int(TABLE_SHARE * n), images, classes, viewmats, Ks, rng),
-        object_hull_points(box, HULL_CANDIDATES * n, images, classes, viewmats, Ks, rng),
-    )
+    its width in height), then random points in ``box`` up to ``n`` (3DGS's random start: raw material that
+    densification moves to what the rest misses). ``images [V,H,W,3]``, ``classes [V,H,W]`` (0: background),
+    ``viewmats``, ``Ks``: the training views."""
+    table = table_points(box, int(TABLE_SHARE * n), images, classes, viewmats, Ks, rng)
+    hull = object_hull_points(box, HULL_CANDIDATES * n, images, classes, viewmats, Ks, rng)
+    parts = (table, hull, points_in_bounds(box, max(0, n - len(table[0]) - len(hull[0])), rng))
     return tuple(np.concatenate([p[j] for p in parts]) for j in range(3))
 
 

@@ -30,7 +30,6 @@ from train_world.single_state.checkpoint import (
 from train_world.single_state.data import TrainData
 from train_world.single_state.field import PARAM_NAMES, Classifier, SegmentedField
 from train_world.single_state.init import (
-    CAP_SHARE,
     carve_silhouettes,
     initial_field,
     points_from_depth,
@@ -149,8 +148,9 @@ class Trainer:
                         ids[: p.num_init_points],
                     )
             elif d.table_bounds is not None and self.has_masks:  # tabletop from photos: table, hulls, random
-                n = min(p.num_init_points, int(CAP_SHARE * p.max_gaussians))
-                pts, cols, ids = tabletop_points(bounds, n, d.images, d.classes, d.viewmats, d.Ks, self.rng)
+                pts, cols, ids = tabletop_points(
+                    bounds, p.num_init_points, d.images, d.classes, d.viewmats, d.Ks, self.rng
+                )
             else:
                 pts, cols, ids = points_in_bounds(bounds, p.num_init_points, self.rng)
             if d.points is not None and len(d.points[0]):  # the capture's sparse points lead, as in 3DGS

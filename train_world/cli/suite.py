@@ -37,6 +37,12 @@ def _parser() -> argparse.ArgumentParser:
         "--pseudo-every", type=int, help="pseudo-state loss every n-th joint step (default: dsg-train's)"
     )
     p.add_argument(
+        "--align-downscale",
+        type=int,
+        metavar="S",
+        help="cross-state renders at 1/S resolution (dsg-train --align-downscale; default: dsg-train's)",
+    )
+    p.add_argument(
         "--max-gaussians",
         type=int,
         help="cap on each field's Gaussian count, baseline (a) too (default: the preset's two-state cap)",
@@ -115,7 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     def one(out: Path, seed: int) -> dict:
         return run_suite(out, _scene_list(args.scenes), methods, preset=args.preset, iterations=args.iterations,
                          synth_args=synth, seed=seed, pseudo_every=args.pseudo_every,
-                         max_gaussians=args.max_gaussians, mip=args.mip, refine_steps=args.refine_steps)  # fmt: skip
+                         align_downscale=args.align_downscale, max_gaussians=args.max_gaussians, mip=args.mip,
+                         refine_steps=args.refine_steps)  # fmt: skip
 
     try:
         if seeds is not None:

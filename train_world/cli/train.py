@@ -197,6 +197,14 @@ def two_state_parser() -> argparse.ArgumentParser:
         default=2,
         help="pseudo-state loss every n-th joint step (default 2; paper: 1)",
     )
+    p.add_argument(
+        "--align-downscale",
+        type=int,
+        default=1,
+        metavar="S",
+        help="render the cross-state views (alignment and pseudo-state losses) at 1/S of the training "
+        "resolution (default 1: full; train_world.dual_state.coarse)",
+    )
     motions = p.add_mutually_exclusive_group()
     motions.add_argument(
         "--refine-motions",
@@ -275,6 +283,7 @@ def two_state_config(args: argparse.Namespace) -> DualConfig:
         tau=args.tau,
         prune_every=args.prune_every,
         pseudo_every=args.pseudo_every,
+        align_downscale=args.align_downscale,
         refine_motions=motions_estimated(args.capture)
         if args.refine_motions is None
         else args.refine_motions,

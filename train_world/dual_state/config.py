@@ -19,6 +19,7 @@ BRANCH_OPTIONS = (
     "refine_motions",
     "motion_lr_translation",
     "motion_lr_rotation",
+    "align_downscale",
 )
 
 
@@ -46,7 +47,11 @@ class DualConfig:
     ``refine_motions``: make the objects' motions between the two states parameters of the joint phase
     (:mod:`.motions`; off: the capture's motions are taken as exact, as in the paper). Their Adam starts at
     ``motion_lr_translation`` times the scene extent (scene units per step) and ``motion_lr_rotation`` (radians
-    per step), both decaying exponentially to a tenth over the joint phase."""
+    per step), both decaying exponentially to a tenth over the joint phase.
+
+    ``align_downscale``: the cross-state renders (``L_align``, ``L_pseudo``) at ``1/align_downscale`` of the
+    training resolution (:mod:`.coarse`; 1: full resolution, as in the paper). The reconstruction renders stay
+    at full resolution."""
 
     base: TrainConfig
     states: tuple[str, str] = ("state1", "state2")
@@ -64,6 +69,7 @@ class DualConfig:
     refine_motions: bool = False
     motion_lr_translation: float = 1e-4
     motion_lr_rotation: float = 3e-4
+    align_downscale: int = 1
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.joint_from <= 1.0:
@@ -74,6 +80,10 @@ class DualConfig:
             raise ValueError("prune_every and pseudo_every must be >= 1")
         if len(self.states) != 2 or self.states[0] == self.states[1]:
             raise ValueError(f"states must be two different names, got {self.states}")
+        if isinstance(self.align_downscale, bool) or not isinstance(self.align_downscale, int):
+            raise ValueError(f"align_downscale must be an integer >= 1, got {self.align_downscale!r}")
+        if self.align_downscale < 1:
+            raise ValueError(f"align_downscale must be an integer >= 1, got {self.align_downscale}")
         for name in ("motion_lr_translation", "motion_lr_rotation"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):

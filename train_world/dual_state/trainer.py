@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from train_world.dual_state.coarse import coarse_views
 from train_world.dual_state.config import BRANCH_OPTIONS, DualConfig, joint_start_step, training_options
 from train_world.dual_state.losses import align_loss, pseudo_loss
 from train_world.dual_state.merge import co_prune_masks, object_footprints_xy, robust_object_points
@@ -97,6 +98,13 @@ class DualTrainer:
         self.P2_initial = self.P2
         self.T12_initial = self.P2 @ np.linalg.inv(self.P1)  # float64, as the capture gives it
         self.motions = ObjectMotions(self.P1, self.P2) if config.refine_motions and len(self.P1) else None
+        # the cross-state renders' views: the training views, or coarser ones (DualConfig.align_downscale)
+        self.coarse = None
+        if config.align_downscale > 1:
+            self.coarse = {
+                id(d): coarse_views(d.images, d.classes, d.Ks, config.align_downscale, d.num_classes)
+                for d in (self.data1, self.data2)
+            }
         self.table_bounds = self.data1.table_bounds
         self.rng = np.random.default_rng(config.base.seed + 7919)
         self.generator = torch.Generator().manual_seed(config.base.seed + 7919)
@@ -173,11 +181,13 @@ class DualTrainer:
         return loss, out.meta, stats["psnr"]
 
     def _render_moved(self, t: Trainer, transform, d: TrainData, i: int, deg: int):
+        """Field ``t`` moved by ``transform``, seen from view ``i`` of ``d`` (at the cross-state resolution)."""
+        v = d if self.coarse is None else self.coarse[id(d)]
         return t.field.render(
             d.viewmats[i : i + 1],
-            d.Ks[i : i + 1],
-            d.width,
-            d.height,
+            v.Ks[i : i + 1],
+            v.width,
+            v.height,
             transform=transform,
             sh_degree=deg,
             background=t.background,
@@ -266,12 +276,13 @@ class DualTrainer:
                 tr12, tr21 = ObjectTransfer(lab1, self.T12), ObjectTransfer(lab2, self.T21)
             o12 = self._render_moved(t1, tr12, self.data2, i2, deg)
             o21 = self._render_moved(t2, tr21, self.data1, i1, deg)
-            c2 = self.data2.classes[i2] if self.has_masks else None
-            c1 = self.data1.classes[i1] if self.has_masks else None
+            v1, v2 = (d if self.coarse is None else self.coarse[id(d)] for d in (self.data1, self.data2))
+            c2 = v2.classes[i2] if self.has_masks else None
+            c1 = v1.classes[i1] if self.has_masks else None
             f12 = o12.features[0] if self.has_masks else None
             f21 = o21.features[0] if self.has_masks else None
-            l_a = align_loss(o12.rgb[0], f12, self.data2.images[i2], c2, self.classifier) + align_loss(
-                o21.rgb[0], f21, self.data1.images[i1], c1, self.classifier
+            l_a = align_loss(o12.rgb[0], f12, v2.images[i2], c2, self.classifier) + align_loss(
+                o21.rgb[0], f21, v1.images[i1], c1, self.classifier
             )
             loss = loss + cfg.lambda_align * l_a
             stats["align"] = float(l_a.detach())

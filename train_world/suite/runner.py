@@ -45,7 +45,8 @@ from typing import Any
 __all__ = ["METHODS", "merge_tables", "run_suite"]
 
 # settings that must agree for runs to share one table
-_SETTINGS = ("preset", "iterations", "mip", "max_gaussians", "synth_args", "seed", "pseudo_every")
+_SETTINGS = ("preset", "iterations", "mip", "max_gaussians", "synth_args", "seed", "pseudo_every",
+             "align_downscale")  # fmt: skip
 
 # name -> (label in the table, extra dsg-train options or None for baselines)
 METHODS: dict[str, tuple[str, list[str] | None]] = {
@@ -287,6 +288,7 @@ def run_suite(
     synth_args: list[str] | None = None,
     seed: int = 0,
     pseudo_every: int | None = None,
+    align_downscale: int | None = None,
     max_gaussians: int | None = None,
     mip: bool | None = None,
     refine_steps: int | None = None,
@@ -314,6 +316,7 @@ def run_suite(
         "synth_args": list(synth_args or []),
         "seed": seed,
         "pseudo_every": pseudo_every,
+        "align_downscale": align_downscale,
         "two_state_schedule": two_state_schedule(preset, iterations, refine_steps),
         "scenes": {},
         "methods": methods,
@@ -374,6 +377,7 @@ def run_suite(
             str(seed),
             "--quiet",
             *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]),
+            *([] if align_downscale is None else ["--align-downscale", str(align_downscale)]),
             "--resume",
             *it,
             *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))]),

@@ -1,8 +1,8 @@
 """Initial Gaussians: back-projected depth where a capture has it, else points placed from what the capture does
 know (led by the capture's sparse structure-from-motion points where it has them, :mod:`train_world.capture.points`):
 random points carved by silhouettes (NeRF-Blender RGBA data), points on the table and inside each object's visual
-hull (a tabletop capture with object masks, as ``dsg-capture`` makes from photos; :func:`tabletop_points`), or
-random points in the scene bounds.
+hull, then random points in the table box (a tabletop capture with object masks, as ``dsg-capture`` makes from
+photos; :func:`tabletop_points`), or random points in the scene bounds.
 
 Also the scene extent (3DGS: 1.1 x the largest camera distance from the cameras' centroid) that scales the
 position learning rate and the clone/split threshold.

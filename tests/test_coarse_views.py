@@ -81,4 +81,6 @@ def test_two_state_training_with_coarse_cross_state_renders(tmp_path):
     assert np.isfinite(w.gaussians().means).all() and w.gaussians().num > 0
     full = tmp_path / "full.dsgworld"
     assert run([str(cap), "--out", str(full), *common, "--branch-from", str(ck)]) == 0
-    assert not np.array_equal(load_world(full).gaussians().means, w.gaussians().means)  # the joint phase differs
+    assert not np.array_equal(
+        load_world(full).gaussians().means, w.gaussians().means
+    )  # the joint phase differs

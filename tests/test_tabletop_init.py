@@ -60,7 +60,9 @@ def test_table_points_lie_on_the_top_and_take_the_colours_of_their_pixels(data):
 def test_hull_points_sit_in_their_object(data):
     d, _, centres = data
     box = _box(d)
-    P, cols, ids = object_hull_points(box, 60_000, d.images, d.classes, d.viewmats, d.Ks, np.random.default_rng(1))
+    P, cols, ids = object_hull_points(
+        box, 60_000, d.images, d.classes, d.viewmats, d.Ks, np.random.default_rng(1)
+    )
     assert set(np.unique(ids)) == set(range(1, len(centres) + 1))  # every object, never the background
     dist = np.linalg.norm(P[:, None, :] - centres[None], axis=-1)  # [P, K]
     assert np.all(dist.argmin(axis=1) + 1 == ids)  # nearest to its own object's origin

@@ -98,13 +98,9 @@ class DualTrainer:
         self.P2_initial = self.P2
         self.T12_initial = self.P2 @ np.linalg.inv(self.P1)  # float64, as the capture gives it
         self.motions = ObjectMotions(self.P1, self.P2) if config.refine_motions and len(self.P1) else None
-        # the cross-state renders' views: the training views, or coarser ones (DualConfig.align_downscale)
-        self.coarse = None
-        if config.align_downscale > 1:
-            self.coarse = {
-                id(d): coarse_views(d.images, d.classes, d.Ks, config.align_downscale, d.num_classes)
-                for d in (self.data1, self.data2)
-            }
+        s = config.align_downscale  # the cross-state renders' views: the training views, or coarser ones
+        self.cross = {id(d): coarse_views(d.images, d.classes, d.Ks, s, d.num_classes) if s > 1 else d
+                      for d in (self.data1, self.data2)}  # fmt: skip
         self.table_bounds = self.data1.table_bounds
         self.rng = np.random.default_rng(config.base.seed + 7919)
         self.generator = torch.Generator().manual_seed(config.base.seed + 7919)
@@ -182,7 +178,7 @@ class DualTrainer:
 
     def _render_moved(self, t: Trainer, transform, d: TrainData, i: int, deg: int):
         """Field ``t`` moved by ``transform``, seen from view ``i`` of ``d`` (at the cross-state resolution)."""
-        v = d if self.coarse is None else self.coarse[id(d)]
+        v = self.cross[id(d)]
         return t.field.render(
             d.viewmats[i : i + 1],
             v.Ks[i : i + 1],
@@ -276,7 +272,7 @@ class DualTrainer:
                 tr12, tr21 = ObjectTransfer(lab1, self.T12), ObjectTransfer(lab2, self.T21)
             o12 = self._render_moved(t1, tr12, self.data2, i2, deg)
             o21 = self._render_moved(t2, tr21, self.data1, i1, deg)
-            v1, v2 = (d if self.coarse is None else self.coarse[id(d)] for d in (self.data1, self.data2))
+            v1, v2 = self.cross[id(self.data1)], self.cross[id(self.data2)]
             c2 = v2.classes[i2] if self.has_masks else None
             c1 = v1.classes[i1] if self.has_masks else None
             f12 = o12.features[0] if self.has_masks else None

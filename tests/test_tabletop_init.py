@@ -90,3 +90,11 @@ def test_training_without_depth_starts_on_the_table_and_in_the_objects(data):
     bare = Trainer(dataclasses.replace(d, classes=None), cfg)
     m2 = bare.field.means.detach().double().numpy()
     assert len(m2) == t.preset.num_init_points and (m2[:, 2] == 0.0).sum() == 0
+
+
+def test_no_object_in_any_view_gives_no_hull_points(data):
+    d, _, _ = data
+    P, cols, ids = object_hull_points(
+        _box(d), 1000, d.images, d.classes * 0, d.viewmats, d.Ks, np.random.default_rng(3)
+    )
+    assert P.shape == (0, 3) and cols.shape == (0, 3) and ids.shape == (0,)

@@ -20,10 +20,12 @@ __all__ = [
     "camera_centres",
     "carve_silhouettes",
     "initial_field",
+    "object_hull_points",
     "points_from_depth",
     "points_in_bounds",
     "scene_bounds_from_cameras",
     "scene_extent",
+    "table_points",
     "tabletop_points",
 ]
 
@@ -164,6 +166,8 @@ def object_hull_points(
     P = lo + (hi - lo) * rng.random((candidates, 3))
     V, H, W = classes.shape
     num_classes = int(classes.max()) + 1
+    if num_classes < 2:  # no object in any view
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
     votes = np.zeros((candidates, num_classes), np.int64)
     seen = np.zeros(candidates, np.int64)
     for i in range(V):
@@ -171,8 +175,6 @@ def object_hull_points(
         idx = np.flatnonzero(ok)
         seen[idx] += 1
         np.add.at(votes, (idx, classes[i].numpy()[v[idx], u[idx]]), 1)
-    if num_classes < 2:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
     k = votes[:, 1:].argmax(axis=1) + 1
     hull = (seen >= 3) & (votes[:, 0] <= 0.1 * seen) & (2 * votes[np.arange(candidates), k] >= seen)
     P, k = P[hull], k[hull]

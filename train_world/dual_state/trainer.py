@@ -33,8 +33,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from train_world.dual_state.checkpoint import load_dual_checkpoint, save_dual_checkpoint
 from train_world.dual_state.coarse import coarse_views
-from train_world.dual_state.config import BRANCH_OPTIONS, DualConfig, joint_start_step, training_options
+from train_world.dual_state.config import DualConfig, joint_start_step
 from train_world.dual_state.losses import align_loss, pseudo_loss
 from train_world.dual_state.merge import co_prune_masks, object_footprints_xy, robust_object_points
 from train_world.dual_state.motions import ObjectMotions, motion_lrs, motions_record
@@ -47,19 +48,12 @@ from train_world.dual_state.transfer import (
 )
 from train_world.dual_state.views import view_names
 from train_world.dual_state.world import MergeInputs, merged_world
-from train_world.single_state.checkpoint import (
-    load_checkpoint,
-    optimizer_from_tensors,
-    optimizer_to_tensors,
-    save_checkpoint,
-)
 from train_world.single_state.data import TrainData, load_training_data
-from train_world.single_state.field import PARAM_NAMES, SegmentedField
+from train_world.single_state.field import SegmentedField
 from train_world.single_state.trainer import (
     Trainer,
     TrainingDiverged,
     check_gradients,
-    make_optimizers,
     means_lr,
 )
 
@@ -365,102 +359,11 @@ class DualTrainer:
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path: str | Path | None = None) -> None:
-        tensors: dict[str, torch.Tensor] = {}
-        for tag, t in (("g1", self.t1), ("g2", self.t2)):
-            for k, v in t.field.params().items():
-                if not bool(torch.isfinite(v).all()):
-                    raise TrainingDiverged(f"{tag}.{k} became non-finite at step {self.step}")
-                tensors[f"{tag}/field/{k}"] = v.data
-            if t.field.filter3d is not None:
-                tensors[f"{tag}/filter3d"] = t.field.filter3d
-            for name, opt in t.optimizers.items():
-                tensors.update(optimizer_to_tensors(f"{tag}/adam/{name}", opt))
-            tensors.update({f"{tag}/strategy/{k}": v for k, v in t.strategy.state_tensors().items()})
-            tensors[f"{tag}/rng/torch"] = t.generator.get_state()
-            tensors[f"{tag}/queue"] = t.queue
-        tensors.update({f"classifier/{k}": v.data for k, v in self.classifier.named_parameters()})
-        tensors.update(optimizer_to_tensors("adam/classifier", self.cls_optimizer))
-        if self.motions is not None:
-            tensors.update(self.motions.state_tensors())
-            tensors.update(optimizer_to_tensors("adam/motions", self.motion_optimizer))
-        tensors["rng/torch"] = self.generator.get_state()
-        meta = {
-            "kind": "dual",
-            "step": self.step,
-            "dual_config": self.config.to_dict(),
-            "elapsed": self.elapsed,
-            "numpy_rng": self.rng.bit_generator.state,
-            "numpy_rng_fields": [self.t1.rng.bit_generator.state, self.t2.rng.bit_generator.state],
-            "history": self.history[-200:],
-            "prune_log": self.prune_log,
-        }
-        save_checkpoint(Path(path or self.checkpoint_path), tensors, meta)
-        self.last_checkpoint_step = self.step
+        save_dual_checkpoint(self, path)
 
     def load_checkpoint(self, path: str | Path | None = None, *, branch: bool = False) -> None:
-        """Continue from a checkpoint made with the same options. ``branch=True`` also accepts one that
-        differs only in the ablation switches (B, C, P), provided it was taken before the joint phase
-        starts: up to then the switches change nothing, so all ablations can share one reconstruction
-        phase bit for bit (``dsg-train --branch-from``, used by ``dsg-suite``)."""
-        path = Path(path or self.checkpoint_path)
-        tensors, meta = load_checkpoint(path)
-        if meta.get("kind") != "dual":
-            raise ValueError(f"{path}: not a two-state (dual) checkpoint")
-        stored = training_options(DualConfig.from_dict(meta["dual_config"]))
-        current = training_options(self.config)
-        if branch:  # the switches and the motion options act in the joint phase only
-            switches = {k: getattr(self.config, k) for k in BRANCH_OPTIONS}
-            if dataclasses.replace(stored, **switches) != current:
-                raise ValueError(
-                    f"{path}: can only branch from a checkpoint whose options differ in B/C/P and the "
-                    "motion refinement alone"
-                )
-            if int(meta["step"]) > self.joint_start:
-                raise ValueError(
-                    f"{path}: checkpoint is at step {meta['step']}, past the start of the joint phase "
-                    f"({self.joint_start}); branching would not reproduce a separate run"
-                )
-        elif stored != current:
-            raise ValueError(
-                f"{path}: checkpoint was made with different options; use the same options to resume"
-            )
-        for tag, t, st in (
-            ("g1", self.t1, meta["numpy_rng_fields"][0]),
-            ("g2", self.t2, meta["numpy_rng_fields"][1]),
-        ):
-            t.field = SegmentedField(*(tensors[f"{tag}/field/{k}"] for k in PARAM_NAMES))
-            t._configure_filters()
-            if f"{tag}/filter3d" in tensors:
-                t.field.filter3d = tensors[f"{tag}/filter3d"].clone()
-            t.optimizers = make_optimizers(t.field, self.preset.lrs, t.extent)
-            for name, opt in t.optimizers.items():
-                optimizer_from_tensors(f"{tag}/adam/{name}", opt, tensors)
-            t.strategy.load_state_tensors(
-                {"grad2d": tensors[f"{tag}/strategy/grad2d"], "count": tensors[f"{tag}/strategy/count"]}
-            )
-            t.generator.set_state(tensors[f"{tag}/rng/torch"].clone())
-            t.queue = tensors[f"{tag}/queue"].clone()
-            t.rng.bit_generator.state = st
-        with torch.no_grad():
-            for k, v in self.classifier.named_parameters():
-                v.copy_(tensors[f"classifier/{k}"])
-        self.cls_optimizer = torch.optim.Adam(self.classifier.parameters(), lr=self.preset.lrs.classifier)
-        optimizer_from_tensors("adam/classifier", self.cls_optimizer, tensors)
-        if self.motions is not None:
-            self.motions = ObjectMotions(self.P1, self.P2_initial)
-            if "motions/rotvec" in tensors:  # else branched from a run without refinement: zero corrections
-                self.motions.load_state_tensors(tensors)
-            self.motion_optimizer = self.motions.make_optimizer(*self._motion_lrs())
-            optimizer_from_tensors("adam/motions", self.motion_optimizer, tensors)
-            if self.motion_optimizer.state:  # stepped: as after that step (else the capture's, bit for bit)
-                self._sync_motions()
-        self.generator.set_state(tensors["rng/torch"].clone())
-        self.rng.bit_generator.state = meta["numpy_rng"]
-        self.step = self.t1.step = self.t2.step = int(meta["step"])
-        self.elapsed = float(meta.get("elapsed", 0.0))
-        self.history = list(meta.get("history", []))
-        self.prune_log = list(meta.get("prune_log", []))
-        self.last_checkpoint_step = self.step
+        """Continue from a checkpoint (:func:`.checkpoint.load_dual_checkpoint`; ``branch``: ``--branch-from``)."""
+        load_dual_checkpoint(self, path, branch=branch)
 
     # ------------------------------------------------------------------ result
     def merge_inputs(self) -> MergeInputs:

@@ -117,9 +117,10 @@ class BatchSceneRenderer:
             threads = nb.get_num_threads() if par else 1
             plan = incr.plan_tiles(tiles, r._bg_bins[0], b_off, True, threads)
             composite = incr.composite_merged if par else incr.composite_merged_serial
+            tails = r.background_tails(layout, tiles[b_off[tiles + 1] > b_off[tiles]], par)
             composite(*plan, bg_rec, bg_rect, bg_rows, r._bg_bins[0], st["m2"], st["conics"], st["opac"], st["colors"],
                       st["rects"], st["depths"], b_off, b_gauss, r.tiles_x, r.tiles_y, r.width, r.height, r._consts,
-                      True, bg_out, bg_T, st["out"], st["T"])  # fmt: skip
+                      True, bg_out, bg_T, *tails, st["out"], st["T"])  # fmt: skip
             incr.finish_tiles(tiles, r.tiles_x, r.tiles_y, r.width, r.height, st["out"], st["T"], r.background_color,
                               layout[1], layout[2], K + 1, layout[3], st["rgb"], st["mask"], st["depth"],
                               st["alpha"])  # fmt: skip

@@ -28,6 +28,7 @@ from .splat import numba_incremental as incr
 from .splat import numba_project as projection
 from .splat import numba_raster as raster
 from .splat import numba_rigid as rigid
+from .splat import numba_tails as ntails
 from .splat.threads import ThreadChooser, min_parallel_work, parallel_allowed
 from .splat_options import DEFAULT_EPS2D, check_splat_options
 
@@ -40,7 +41,9 @@ class RenderSettings:
 
     ``alpha_min``: a Gaussian is skipped at a pixel where its alpha is below this (3DGS: 1/255);
     ``t_min``: a pixel stops compositing once its transmittance would fall below this (3DGS: 1e-4);
-    ``sh_degree``: highest SH degree evaluated (``None``: whatever the world carries).
+    ``sh_degree``: highest SH degree evaluated (``None``: whatever the world carries);
+    ``tail_stride``: background tail tables every this many list entries (0: exact merge; see
+    :class:`SceneRenderer`).
 
     The defaults are the point ``python -m benchmarks.pareto`` recommends for the env: the fastest setting
     on the step-time/PSNR Pareto front within 0.1 dB of the most accurate one on the bundled world
@@ -50,16 +53,21 @@ class RenderSettings:
     alpha_min: float = 2.0 / 255.0
     t_min: float = 1e-3
     sh_degree: int | None = None
+    tail_stride: int = 64
 
     def __post_init__(self):
         raster.check_thresholds(float(self.alpha_min), float(self.t_min))
         d = self.sh_degree
         if d is not None and (isinstance(d, bool) or not isinstance(d, (int, np.integer)) or not 0 <= d <= 3):
             raise ValueError(f"sh_degree must be None or an integer in 0..3, got {d!r}")
+        n = self.tail_stride
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+            raise ValueError(f"tail_stride must be an integer >= 0 (0: exact merge), got {n!r}")
 
     def kwargs(self) -> dict:
         """Keyword arguments of :class:`SceneRenderer`."""
-        return {"alpha_min": float(self.alpha_min), "t_min": float(self.t_min), "sh_degree": self.sh_degree}
+        return {"alpha_min": float(self.alpha_min), "t_min": float(self.t_min), "sh_degree": self.sh_degree,
+                "tail_stride": int(self.tail_stride)}
 
 
 @dataclass(frozen=True)
@@ -145,6 +153,12 @@ class SceneRenderer:
         rasterize_mode: "classic" or "antialiased" (the Mip filter of :func:`dsg_gym.splat.rasterize`),
             eps2d: the 2D low-pass in px^2; a world must be rendered with the options it was trained with
             (``World.splat_options``).
+        tail_stride: 0 (default): every recomposited tile is merged exactly, so the images equal a full render
+            bit for bit. N > 0: behind a tile's last object Gaussian the background is taken from per-tile tail
+            tables (:mod:`dsg_gym.splat.numba_tails`: checkpoints every N entries of the tile's background list,
+            built the first time an object reaches the tile); faster, and within float32 rounding of the exact
+            merge (an uint8 colour or a mask id can differ where a value sits on a rounding boundary).
+            Memory: up to (D + 1) 4 KB per checkpoint, D the composited channels.
         parallel: run the kernels on numba's threads. ``None``: where threads are allowed (a main process,
             not one started by ``multiprocessing`` such as a vector-env worker), each render takes the threaded
             or the single-threaded kernels, whichever has been faster lately
@@ -159,7 +173,7 @@ class SceneRenderer:
                  height: int, background_color=(0.0, 0.0, 0.0), near_plane: float = 0.01,
                  far_plane: float = 1e10, alpha_min: float = raster.ALPHA_MIN, t_min: float = raster.T_MIN,
                  sh_degree: int | None = None, rasterize_mode: str = "classic", eps2d: float = DEFAULT_EPS2D,
-                 parallel: bool | None = None):
+                 tail_stride: int = 0, parallel: bool | None = None):
         self.rasterize_mode, self.eps2d = check_splat_options(rasterize_mode, eps2d)
         if parallel not in (None, True, False):
             raise ValueError(f"parallel must be None, True or False, got {parallel!r}")
@@ -184,7 +198,8 @@ class SceneRenderer:
         self._obj_quats = cat("quats", (0, 4))
         self._obj_scales = cat("scales", (0, 3))
         self._obj_opac = cat("opacities", (0,))
-        RenderSettings(alpha_min, t_min, sh_degree)  # validates
+        RenderSettings(alpha_min, t_min, sh_degree, tail_stride)  # validates
+        self.tail_stride = int(tail_stride)
         deg = max([background.sh_degree] + [o.sh_degree for o in self.objects])
         if sh_degree is not None:
             deg = min(deg, int(sh_degree))
@@ -235,6 +250,7 @@ class SceneRenderer:
         self._state = None  # (channels key, poses, object arrays, buffers)
         self._bg_lists = {}  # layout -> the background's packed tile lists
         self._bg_render = None  # (layout, accumulators, transmittance) of the background alone
+        self._bg_tails = None  # (layout, offsets, colours, transmittance, built) of the tail tables
 
     # ----------------------------------------------------------------------------------------
     def _channels(self, rgb: bool, mask: bool, depth: bool) -> tuple[int, int, int, int]:
@@ -340,9 +356,11 @@ class SceneRenderer:
             cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
             threads = nb.get_num_threads() if par else 1
             plan = incr.plan_tiles(tiles, self._bg_bins[0], b_off, bool(incremental), threads)
+            tails = self.background_tails(layout, tiles[b_off[tiles + 1] > b_off[tiles]], par) if incremental \
+                else self._no_tails(layout)
             composite(*plan, st["bg_rec"], st["bg_rect"], st["bg_rows"], self._bg_bins[0], b.means2d, b.conics,
                       st["opac"], st["colors"], b.rects, b.depths, b_off, b_gauss, self.tiles_x, self.tiles_y, self.width,
-                      self.height, self._consts, bool(incremental), *cache, st["out"], st["T"])
+                      self.height, self._consts, bool(incremental), *cache, *tails, st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
         out = self._outputs(st, layout, tiles)
@@ -384,11 +402,42 @@ class SceneRenderer:
             composite(*plan, rec, rect, rows, self._bg_bins[0], np.zeros((V, 0, 2), np.float32),
                       np.zeros((V, 0, 3), np.float32), np.zeros((1, 0), np.float32), np.zeros((V, 0, D), np.float32),
                       np.zeros((V, 0, 4), np.int32), np.zeros((V, 0), np.float32), none, np.zeros(0, np.int32),
-                      self.tiles_x, self.tiles_y, self.width, self.height, self._consts, False, out, T, out, T)
+                      self.tiles_x, self.tiles_y, self.width, self.height, self._consts, False, out, T,
+                      *self._no_tails(layout), out, T)
             out.flags.writeable = False
             T.flags.writeable = False
             self._bg_render = (layout, out, T)
         return self._bg_render[1], self._bg_render[2]
+
+    def _no_tails(self, layout) -> tuple:
+        """The composite kernels' tail arguments for an exact merge."""
+        D = max(layout[0], 1)
+        return 0, np.zeros(1, np.int64), np.zeros((0, raster.TILE ** 2, D), np.float32), \
+            np.zeros((0, raster.TILE ** 2), np.float32)
+
+    def background_tails(self, layout, tiles: np.ndarray, par: bool) -> tuple:
+        """The composite kernels' tail arguments ``(stride, offsets, colours, transmittance)`` with the tables of
+        ``tiles`` (any camera index ``c * T + t``; the background's camera is ``c % V``) built; the exact merge's
+        when ``tail_stride`` is 0. Only tiles an object's list reaches need tables (elsewhere every pixel comes
+        from the background render). The tables are allocated once per layout and camera set (pages are
+        touched only as tiles are built) and filled tile by tile as objects reach them."""
+        if self.tail_stride <= 0:
+            return self._no_tails(layout)
+        if self._bg_tails is None or self._bg_tails[0] != layout:
+            off = ntails.tail_offsets(self._bg_bins[0], self.tail_stride)
+            D = max(layout[0], 1)
+            self._bg_tails = (layout, off, np.empty((off[-1], raster.TILE ** 2, D), np.float32),
+                              np.empty((off[-1], raster.TILE ** 2), np.float32), np.zeros(off.size - 1, np.bool_))
+        _, off, col, T, built = self._bg_tails
+        todo = np.unique(np.asarray(tiles, np.int64) % built.size)
+        todo = todo[~built[todo]]
+        if todo.size:
+            rec, rect, rows = self._background_lists(layout)
+            build = ntails.build_tails if par else ntails.build_tails_serial
+            build(todo, rec, rect, rows, self._bg_bins[0], self.tail_stride, off, self.tiles_x, self.tiles_y,
+                  self.width, self.height, self._consts, col, T, nb.get_num_threads() if par else 1)
+            built[todo] = True
+        return self.tail_stride, off, col, T
 
     def buffers(self) -> tuple[np.ndarray, np.ndarray]:
         """The raw accumulators of the last render: colours [V,H,W,D] (no background) and T [V,H,W]."""

@@ -72,18 +72,30 @@ def test_seed_reproduces_and_steps_are_deterministic():
     assert not np.array_equal(other["goal"], runs[0][0]["goal"])
 
 
-def test_incremental_equals_full_over_random_episode():
+@pytest.mark.parametrize("tail_stride", [0, 64])
+def test_incremental_equals_full_over_random_episode(tail_stride):
+    """Exact merge (tail_stride 0): the same images as full renders, bit for bit. Background tail tables (the
+    default): within the transmittance cut-off's reach: a few uint8 levels on a few percent of the pixels."""
     rng = np.random.default_rng(0)
-    inc = gym.make("DSGWorld-v0", obs=("rgb", "mask", "depth"), incremental=True)
-    full = gym.make("DSGWorld-v0", obs=("rgb", "mask", "depth"), incremental=False)
+    settings = {"tail_stride": tail_stride}
+    inc = gym.make("DSGWorld-v0", obs=("rgb", "mask", "depth"), incremental=True, render_settings=settings)
+    full = gym.make("DSGWorld-v0", obs=("rgb", "mask", "depth"), incremental=False, render_settings=settings)
     a, _ = inc.reset(seed=7)
     b, _ = full.reset(seed=7)
+    differ = 0
     for _ in range(25):
         act = _one_object_action(inc, rng)
         a = inc.step(act)[0]
         b = full.step(act)[0]
-        for k in ("rgb", "mask", "depth"):
-            assert np.array_equal(a[k], b[k]), k
+        if tail_stride == 0:
+            for k in ("rgb", "mask", "depth"):
+                assert np.array_equal(a[k], b[k]), k
+        else:
+            d = np.abs(a["rgb"].astype(int) - b["rgb"].astype(int))
+            assert d.max() <= 8 and (d > 0).any(-1).mean() < 0.05
+            assert (a["mask"] != b["mask"]).mean() < 0.01
+            differ += int((d > 0).any())
+    assert tail_stride == 0 or differ > 0  # the tables are in use
     assert inc.unwrapped.renderer.last_dirty_tiles < full.unwrapped.renderer.last_dirty_tiles
 
 

@@ -251,8 +251,8 @@ def test_scene_renderer_colours_match_moved_gaussians_with_rotated_sh(setup):
 
 
 def test_render_settings_defaults_and_incremental_exactness(setup):
-    """Settings at the 3DGS values render exactly like no settings; the env's default settings and
-    other thresholds keep incremental == full and change the image only a little."""
+    """Settings at the 3DGS values with the exact merge render exactly like no settings; the env's default
+    settings change the image only a little; other thresholds keep incremental == full."""
     from dsg_gym.scene_renderer import RenderSettings
     from dsg_gym.splat import numba_raster as raster
 
@@ -260,7 +260,7 @@ def test_render_settings_defaults_and_incremental_exactness(setup):
     poses = np.stack([_pose(-0.2, 0.0, 0.0), _pose(0.1, 0.15, 0.5), _pose(0.15, -0.2, 1.0)])
     ref = SceneRenderer(bg, objs, vm, K, W, H).render(poses, depth=True)
     same = SceneRenderer(
-        bg, objs, vm, K, W, H, **RenderSettings(raster.ALPHA_MIN, raster.T_MIN).kwargs()
+        bg, objs, vm, K, W, H, **RenderSettings(raster.ALPHA_MIN, raster.T_MIN, tail_stride=0).kwargs()
     ).render(poses, depth=True)
     assert np.array_equal(ref.rgb, same.rgb) and np.array_equal(ref.alpha, same.alpha)
     env_default = SceneRenderer(bg, objs, vm, K, W, H, **RenderSettings().kwargs()).render(poses, depth=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -94,12 +95,12 @@ class DSGWorldEnv(gym.Env):
     | ``max_translation`` | 0.02 | metres per step at action 1 (``delta``, ``se3``) |
     | ``max_rotation`` | 0.2 | radians per step at action 1 (``delta``: yaw, ``se3``: axis-angle norm per component) |
     | ``task`` | ``TaskParams()`` | tolerances and reward weights (:class:`~dsg_gym.envs.tasks.TaskParams` or a dict of its fields) |
-    | ``incremental`` | ``True`` | incremental rendering (``False``: full render every step; same images) |
+    | ``incremental`` | ``True`` | incremental rendering (``False``: full render every step; the same images with ``tail_stride`` 0) |
     | ``render_mode`` | ``None`` | ``"rgb_array"``: ``render()`` returns uint8 ``(render_height, render_width * V, 3)`` |
     | ``render_width``, ``render_height`` | 256, 256 | size of ``render()`` images |
     | ``render_goal`` | ``False`` | ``render()`` frames also show each object at its goal pose as a translucent, outlined ghost (observations never do) |
     | ``background_color`` | ``(0, 0, 0)`` | RGB in [0, 1] behind all Gaussians |
-    | ``render_settings`` | ``RenderSettings()`` | renderer speed/accuracy knobs (:class:`~dsg_gym.scene_renderer.RenderSettings` or a dict of its fields: ``alpha_min`` 2/255, ``t_min`` 1e-3, ``sh_degree`` ``None``: the point ``benchmarks/pareto.py`` recommends; ``{"alpha_min": 1/255, "t_min": 1e-4}`` renders exactly like the training renderer) |
+    | ``render_settings`` | ``RenderSettings()`` | renderer speed/accuracy knobs (:class:`~dsg_gym.scene_renderer.RenderSettings` or a dict of its fields: ``alpha_min`` 2/255, ``t_min`` 1e-3, ``sh_degree`` ``None``: the point ``benchmarks/pareto.py`` recommends; ``tail_stride`` 64: background tail tables behind the objects, within the ``t_min`` cut-off's reach of the exact merge; ``{"alpha_min": 1/255, "t_min": 1e-4, "tail_stride": 0}`` renders exactly like the training renderer) |
     | ``max_episode_steps`` | ``None`` | internal truncation (``gymnasium.make`` adds a ``TimeLimit`` of 200 steps anyway) |
 
     ## Action space
@@ -201,9 +202,10 @@ class DSGWorldEnv(gym.Env):
         if render_settings is None:
             render_settings = RenderSettings()
         elif isinstance(render_settings, Mapping):
-            bad = set(render_settings) - {"alpha_min", "t_min", "sh_degree"}
+            known = [f.name for f in dataclasses.fields(RenderSettings)]
+            bad = set(render_settings) - set(known)
             if bad:
-                raise ValueError(f"render_settings: unknown keys {sorted(bad)} (alpha_min, t_min, sh_degree)")
+                raise ValueError(f"render_settings: unknown keys {sorted(bad)} ({', '.join(known)})")
             render_settings = RenderSettings(**render_settings)
         elif not isinstance(render_settings, RenderSettings):
             raise ValueError(

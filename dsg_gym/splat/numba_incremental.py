@@ -28,6 +28,7 @@ from .numba_raster import (
     tile_state,
 )
 from .numba_sh import sh_basis
+from .numba_tails import add_tail
 
 _TILE_BITS = TILE.bit_length() - 1  # tile index of a pixel (>= 0): p >> _TILE_BITS
 assert 1 << _TILE_BITS == TILE
@@ -103,8 +104,9 @@ def pack_lists(m2, cn, op, col, rect, depth, off, gauss, tiles_x, tiles_y, width
 
 @nb.njit(cache=True, inline="always", fastmath=FASTMATH)
 def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
-                    b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T,
-                    acc, trans, row_done, xc, yc, b_rows, cover):
+                    b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, cache, out_colors, out_T, acc, trans,
+                    row_done, xc, yc, b_rows, cover):
+    bg_colors, bg_T, tail_stride, tail_off, tail_col, tail_T = cache
     T = tiles_x * tiles_y
     c = ct // T
     ca = c % ((a_off.shape[0] - 1) // T)  # the background's camera: several scenes may share one background
@@ -112,15 +114,15 @@ def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b
     npix = pw * ph
     cb = 0 if b_op.shape[0] == 1 else c
     ndone = 0
-    i = a_off[ct - (c - ca) * T]
+    i = i0 = a_off[ct - (c - ca) * T]
     ie = a_off[ct - (c - ca) * T + 1]
     j0 = j = b_off[ct]
     je = b_off[ct + 1]
     if use_cache:
         ndone = _copy_uncovered(c, ca, ct, px0, py0, pw, ph, yc, b_m2, b_cn, b_op, b_rect, b_off, b_gauss, consts,
                                 bg_colors, bg_T, acc, trans, row_done, b_rows, cover)
-    while (i < ie or j < je) and ndone < npix:
-        if j >= je or (i < ie and a_rec[i, 6] <= b_depth[c, b_gauss[j]]):
+    while j < je and ndone < npix:
+        if i < ie and a_rec[i, 6] <= b_depth[c, b_gauss[j]]:
             f = a_rec[i]
             ndone += splat_rows(consts, f[0], f[1], f[2], f[3], f[4], f[5], a_rect[i, 2], a_rect[i, 3], a_rows[i],
                                 f[8:], py0, ph, xc, yc, acc, trans, row_done, f[7])
@@ -137,33 +139,51 @@ def _composite_tile(ct, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b
                                        b_rect[c, g, 2], b_rect[c, g, 3], b_col[c, g], px0, py0, pw, ph, xc, yc,
                                        acc, trans, row_done)
             j += 1
+    # the objects are done: the background's rest, exactly up to the next tail checkpoint (if any)
+    stop = ie
+    if use_cache and tail_stride > 0 and i < ie:
+        q = (i - i0 + tail_stride - 1) // tail_stride
+        stop = min(i0 + q * tail_stride, ie)
+    while i < stop and ndone < npix:
+        f = a_rec[i]
+        ndone += splat_rows(consts, f[0], f[1], f[2], f[3], f[4], f[5], a_rect[i, 2], a_rect[i, 3], a_rows[i], f[8:],
+                            py0, ph, xc, yc, acc, trans, row_done, f[7])
+        i += 1
+    if i < ie and ndone < npix:  # only with tails: the rest from the table
+        add_tail(tail_off[ct - (c - ca) * T] + (i - i0) // tail_stride, pw, ph, tail_col, tail_T, acc, trans,
+                 row_done)
     store_tile(c, px0, py0, pw, ph, acc, trans, out_colors, out_T)
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
 def _composite_tiles(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T, acc,
-                     trans, row_done, xc, yc, b_rows, cover):
+                     tiles_x, tiles_y, width, height, consts, use_cache, cache, out_colors, out_T, acc, trans,
+                     row_done, xc, yc, b_rows, cover):
     """Recomposite ``tiles`` one after the other in the scratch arrays acc [256, D], trans [256], row_done,
-    xc, yc, cover [16] and b_rows [>= longest object list with the cache, 16]. Every argument is borrowed
+    xc, yc, cover [16] and b_rows [>= longest object list with the cache, 16]; ``cache`` holds
+    (bg_colors, bg_T, tail_stride, tail_off, tail_col, tail_T) (a tuple: calls of more than 30 arguments compile to
+    a ``*args`` call, which numba cannot inline). Every argument is borrowed
     (:func:`~dsg_gym.splat.numba_intrinsics.borrow`; the caller holds them): the per-Gaussian and per-row views
     then cost no reference counting. Per-tile allocations with their counted views made the single-threaded
     kernel 2x slower than the threaded one run on one thread."""
     tiles, a_rec, a_rect, a_rows, a_off = borrow(tiles), borrow(a_rec), borrow(a_rect), borrow(a_rows), borrow(a_off)
     b_m2, b_cn, b_op, b_col, b_rect = borrow(b_m2), borrow(b_cn), borrow(b_op), borrow(b_col), borrow(b_rect)
     b_depth, b_off, b_gauss, consts = borrow(b_depth), borrow(b_off), borrow(b_gauss), borrow(consts)
+    bg_colors, bg_T, tail_stride, tail_off, tail_col, tail_T = cache
     bg_colors, bg_T, out_colors, out_T = borrow(bg_colors), borrow(bg_T), borrow(out_colors), borrow(out_T)
     acc, trans, row_done, xc, yc = borrow(acc), borrow(trans), borrow(row_done), borrow(xc), borrow(yc)
     b_rows, cover = borrow(b_rows), borrow(cover)
+    cache = (bg_colors, bg_T, tail_stride, borrow(tail_off), borrow(tail_col), borrow(tail_T))
     for m in range(tiles.shape[0]):
         _composite_tile(tiles[m], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
-                        b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,
-                        out_T, acc, trans, row_done, xc, yc, b_rows, cover)
+                        b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, cache, out_colors, out_T, acc,
+                        trans, row_done, xc, yc, b_rows, cover)
 
 
 @nb.njit(cache=True)
 def _composite_chunk(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T):
+                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, tail_stride, tail_off,
+                     tail_col, tail_T, out_colors, out_T):
     """:func:`_composite_tiles` with scratch arrays made for ``tiles`` (once, not per tile)."""
     D = out_colors.shape[3]
     longest = 0
@@ -171,8 +191,8 @@ def _composite_chunk(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_co
         for m in range(tiles.shape[0]):
             longest = max(longest, b_off[tiles[m] + 1] - b_off[tiles[m]])
     _composite_tiles(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
-                     tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors, out_T,
-                     np.empty((TILE * TILE, D), out_colors.dtype), np.empty(TILE * TILE, out_colors.dtype),
+                     tiles_x, tiles_y, width, height, consts, use_cache,
+                     (bg_colors, bg_T, tail_stride, tail_off, tail_col, tail_T), out_colors, out_T, np.empty((TILE * TILE, D), out_colors.dtype), np.empty(TILE * TILE, out_colors.dtype),
                      np.empty(TILE, np.int64), np.empty(TILE, out_colors.dtype), np.empty(TILE, out_colors.dtype),
                      np.empty((longest, TILE), np.uint16), np.empty(TILE, np.int64))
 
@@ -214,15 +234,16 @@ def plan_tiles(tiles, a_off, b_off, use_cache, nthreads):
 
 @nb.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def composite_merged(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off,
-                     b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, out_colors,
-                     out_T):
+                     b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T, tail_stride,
+                     tail_off, tail_col, tail_T, out_colors, out_T):
     """Recomposite tiles (each ``c * T + t``) into out_colors/out_T; thread ``k`` takes
     ``order[starts[k]:starts[k + 1]]`` (:func:`plan_tiles`).
 
     Background ``a``: its tile lists as records (:func:`pack_lists`: a_rec [E, 8 + D], a_rect [E, 4], row
     spans a_rows [E, 16]) and CSR offsets a_off [Ca*T+1]; with the cache, C may be a multiple of Ca (scenes that
-    share the background: camera c composites over the background's camera ``c % Ca``), else Ca = C. Objects ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in
-    {1, C}), colors [C,N,D], rects [C,N,4], depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
+    share the background: camera c composites over the background's camera ``c % Ca``), else Ca = C. Objects
+    ``b``: means2d [C,N,2], conics [C,N,3], opacities [Co,N] (Co in {1, C}), colors [C,N,D], rects [C,N,4],
+    depths [C,N], tile CSR offsets [C*T+1] and Gaussian indices.
 
     ``use_cache``: reuse a background-only render (bg_colors [Ca,H,W,D], bg_T [Ca,H,W]; ignored
     otherwise). A pixel that no object Gaussian's footprint reaches (the row spans where its alpha
@@ -230,22 +251,28 @@ def composite_merged(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_
     background-only sequence of blends, so its accumulators are copied from the cache and marked
     finished; only object-covered pixels are composited, and the objects' row spans computed for the
     cover are reused. The result is the same bit for bit.
+
+    ``tail_stride`` > 0 (with the cache): behind a tile's last object Gaussian the background is composited up
+    to the next multiple of ``tail_stride`` in its list and the rest added from the tile's tail table
+    (:mod:`.numba_tails`: tail_off [Ca*T+1], tail_col [M, 256, D], tail_T [M, 256], built for every tile
+    listed here); the result then differs from the exact merge by float32 rounding. 0: no tables (pass empty
+    arrays).
     """
     for k in nb.prange(starts.shape[0] - 1):
         _composite_chunk(order[starts[k]:starts[k + 1]], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col,
                          b_rect, b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache,
-                         bg_colors, bg_T, out_colors, out_T)
+                         bg_colors, bg_T, tail_stride, tail_off, tail_col, tail_T, out_colors, out_T)
 
 
 @nb.njit(cache=True)
 def composite_merged_serial(order, starts, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect,
                             b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors,
-                            bg_T, out_colors, out_T):
+                            bg_T, tail_stride, tail_off, tail_col, tail_T, out_colors, out_T):
     """``composite_merged`` on the calling thread (:func:`dsg_gym.splat.threads.parallel_allowed`): the same
     tiles with the same arithmetic, so the same bits."""
     _composite_chunk(order[starts[0]:starts[-1]], a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect,
                      b_depth, b_off, b_gauss, tiles_x, tiles_y, width, height, consts, use_cache, bg_colors, bg_T,
-                     out_colors, out_T)
+                     tail_stride, tail_off, tail_col, tail_T, out_colors, out_T)
 
 
 @nb.njit(cache=True)

@@ -3,7 +3,8 @@
 All on the bundled world with ``obs=("rgb", "mask")`` and one random object moved per env step (as
 ``benchmarks.env_step``), each rate the median over ``--repeats`` runs; one process, nothing else should run.
 
-Every run of a configuration starts from the same reset and takes the same actions, so runs do the same work.
+Every run of a configuration starts from the same reset and takes the same actions, so runs do the same work;
+the reset before them is not timed.
 
 * ``vector``: one env; ``DSGWorld-v0``'s own vector env with 4 and 16 envs (``vectorization_mode=
   "vector_entry_point"``); ``AsyncVectorEnv`` with 2 single-threaded workers; memory per extra env of the vector
@@ -13,8 +14,9 @@ Every run of a configuration starts from the same reset and takes the same actio
   beside a busy second process (a Python loop), for each thread choice of the renderer: ``auto`` (the default:
   :class:`dsg_gym.splat.threads.ThreadChooser`), ``threads`` (always the threaded kernels) and ``serial``; the
   idle and shared runs alternate repeat by repeat.
-* ``sizes``: 64, 128 and 256 px with 1, 2 and 4 capture cameras: one env, the 16-env vector env, and MuJoCo's
-  own EGL render (RGB + segmentation of the matching synthetic scene, every camera) in the same run.
+* ``sizes``: 64, 128 and 256 px with 1, 2 and 4 capture cameras: one env, one env with the exact merge
+  (``render_settings={"tail_stride": 0}``, no background tail tables), the 16-env vector env, and MuJoCo's own
+  EGL render (RGB + segmentation of the matching synthetic scene, every camera) in the same run.
 """
 
 from __future__ import annotations
@@ -55,9 +57,12 @@ TARGETS = {
 class Stepper:
     """One env or a vector env of ``n`` envs stepped by one-object moves; ``run(steps)`` returns env steps/s."""
 
-    def __init__(self, n: int, size: int, cameras: int = 1, threads: str = "auto", seed: int = 0):
+    def __init__(self, n: int, size: int, cameras: int = 1, threads: str = "auto", seed: int = 0,
+                 tail_stride: int | None = None):  # fmt: skip
         kw = {"width": size, "height": size, "obs": ("rgb", "mask"), "max_episode_steps": 10**6,
               "cameras": list(range(cameras)) if cameras > 1 else 0}  # fmt: skip
+        if tail_stride is not None:
+            kw["render_settings"] = {"tail_stride": tail_stride}
         if n == 1:
             self.env = gym.make("DSGWorld-v0", **kw)
             self.members = [self.env.unwrapped]
@@ -79,7 +84,8 @@ class Stepper:
         return self._acts[steps]
 
     def run(self, steps: int, keep: bool = True) -> float:
-        """``steps`` steps from the same start with the same actions every time (the same work)."""
+        """``steps`` steps from the same start with the same actions every time (the same work); the reset
+        before them is not timed."""
         acts = self._actions(steps)
         self.env.reset(seed=self.seed)
         t0 = time.perf_counter()
@@ -200,20 +206,23 @@ def sizes_section(steps: int, repeats: int, sizes, cameras) -> dict:
     rows = []
     for size in sizes:
         for v in cameras:
-            one, vec = Stepper(1, size, v), Stepper(16, size, v)
+            one, exact, vec = Stepper(1, size, v), Stepper(1, size, v, tail_stride=0), Stepper(16, size, v)
             mj = MujocoRun(size, cameras=v)
             for _ in range(repeats):
                 one.run(steps)
+                exact.run(steps)
                 vec.run(max(2, steps // 16))
                 mj.run(max(10, steps // 2))
             rows.append({
                 "size": size, "cameras": v,
                 "one_env_steps_per_s": round(one.median(), 1),
+                "one_env_exact_merge_steps_per_s": round(exact.median(), 1),
                 "vector16_env_steps_per_s": round(vec.median(), 1),
                 "mujoco_steps_per_s": round(float(np.median(mj.rates)), 1),
                 "vector16_over_one_env": round(vec.median() / one.median(), 3),
             })  # fmt: skip
             one.env.close()
+            exact.env.close()
             vec.env.close()
             mj.renderer.close()
             print(json.dumps(rows[-1]), flush=True)

@@ -6,17 +6,20 @@ All on the bundled world with ``obs=("rgb", "mask")`` and one random object move
 Every run of a configuration starts from the same reset and takes the same actions, so runs do the same work;
 the reset before them is not timed.
 
-* ``vector``: one env; ``DSGWorld-v0``'s own vector env with 4 and 16 envs (``vectorization_mode=
-  "vector_entry_point"``); ``AsyncVectorEnv`` with 2 single-threaded workers; memory per extra env of the vector
-  env (``tracemalloc``: the Python and numpy allocations a 16-env vector env holds after stepping, minus a
-  1-env one's, over 15).
+* ``vector``: one env (seed 0, as every one-env figure here); one env playing the 16-env vector env's episodes
+  one after the other (the same scenes and actions: the reference of ``vector16_over_one_env_same_episodes``,
+  since the per-step work differs from scene to scene); ``DSGWorld-v0``'s own vector env with 4 and 16 envs
+  (``vectorization_mode="vector_entry_point"``); ``AsyncVectorEnv`` with 2 single-threaded workers; memory per
+  extra env of the vector env (``tracemalloc``: the Python and numpy allocations a 16-env vector env holds after
+  stepping, minus a 1-env one's, over 15).
 * ``shared``: one env idle, beside a busy learner thread in this process (torch matmuls, as an SB3 update) and
   beside a busy second process (a Python loop), for each thread choice of the renderer: ``auto`` (the default:
   :class:`dsg_gym.splat.threads.ThreadChooser`), ``threads`` (always the threaded kernels) and ``serial``; the
   idle and shared runs alternate repeat by repeat.
-* ``sizes``: 64, 128 and 256 px with 1, 2 and 4 capture cameras: one env, one env with the exact merge
-  (``render_settings={"tail_stride": 0}``, no background tail tables), the 16-env vector env, and MuJoCo's own
-  EGL render (RGB + segmentation of the matching synthetic scene, every camera) in the same run.
+* ``sizes``: 64, 128 and 256 px with 1, 2 and 4 capture cameras: one env, one env playing the vector env's
+  episodes, one env with the exact merge (``render_settings={"tail_stride": 0}``, no background tail tables), the
+  16-env vector env, and MuJoCo's own EGL render (RGB + segmentation of the matching synthetic scene, every
+  camera) in the same run.
 """
 
 from __future__ import annotations
@@ -55,10 +58,14 @@ TARGETS = {
 
 
 class Stepper:
-    """One env or a vector env of ``n`` envs stepped by one-object moves; ``run(steps)`` returns env steps/s."""
+    """One env or a vector env of ``n`` envs stepped by one-object moves; ``run(steps)`` returns env steps/s.
+
+    ``episodes`` > 1 (one env only): the env plays the episodes of an ``episodes``-env vector env one after the
+    other (episode i from ``reset(seed=seed + i)`` with env i's actions), so it does the vector env's work;
+    the resets are not timed."""
 
     def __init__(self, n: int, size: int, cameras: int = 1, threads: str = "auto", seed: int = 0,
-                 tail_stride: int | None = None):  # fmt: skip
+                 tail_stride: int | None = None, episodes: int = 1):  # fmt: skip
         kw = {"width": size, "height": size, "obs": ("rgb", "mask"), "max_episode_steps": 10**6,
               "cameras": list(range(cameras)) if cameras > 1 else 0}  # fmt: skip
         if tail_stride is not None:
@@ -70,6 +77,7 @@ class Stepper:
             self.env = gym.make_vec("DSGWorld-v0", num_envs=n, vectorization_mode="vector_entry_point", **kw)
             self.members = self.env.unwrapped.envs
         self.n, self.k = n, self.members[0].K
+        self.episodes = episodes if n == 1 else 1
         self.seed, self._acts = seed, {}
         parallel = {"auto": None, "threads": True, "serial": False}[threads]
         self.members[0].renderer.parallel = parallel  # the vector env's batch renderer follows its base
@@ -79,19 +87,30 @@ class Stepper:
     def _actions(self, steps: int) -> np.ndarray:
         if steps not in self._acts:
             rng = np.random.default_rng(self.seed)
-            a = np.stack([_one_object_actions(rng, steps, self.k) for _ in range(self.n)], axis=1)
-            self._acts[steps] = a[:, 0] if self.n == 1 else a
+            m = max(self.n, self.episodes)
+            a = np.stack([_one_object_actions(rng, steps, self.k) for _ in range(m)], axis=1)
+            self._acts[steps] = a[:, 0] if m == 1 else a
         return self._acts[steps]
 
     def run(self, steps: int, keep: bool = True) -> float:
         """``steps`` steps from the same start with the same actions every time (the same work); the reset
         before them is not timed."""
         acts = self._actions(steps)
-        self.env.reset(seed=self.seed)
-        t0 = time.perf_counter()
-        for a in acts:
-            self.env.step(a)
-        rate = steps * self.n / (time.perf_counter() - t0)
+        if self.episodes > 1:
+            took = 0.0
+            for i in range(self.episodes):
+                self.env.reset(seed=self.seed + i)
+                t0 = time.perf_counter()
+                for a in acts[:, i]:
+                    self.env.step(a)
+                took += time.perf_counter() - t0
+            rate = steps * self.episodes / took
+        else:
+            self.env.reset(seed=self.seed)
+            t0 = time.perf_counter()
+            for a in acts:
+                self.env.step(a)
+            rate = steps * self.n / (time.perf_counter() - t0)
         if keep:
             self.rates.append(rate)
         return rate
@@ -105,10 +124,11 @@ def _med(r: Stepper) -> dict:
 
 
 def vector_section(steps: int, repeats: int) -> dict:
-    runs = {"one_env": Stepper(1, 128), "vector4": Stepper(4, 128), "vector16": Stepper(16, 128)}
+    runs = {"one_env": Stepper(1, 128), "one_env_same_episodes": Stepper(1, 128, episodes=16),
+            "vector4": Stepper(4, 128), "vector16": Stepper(16, 128)}  # fmt: skip
     for _ in range(repeats):
         for name, r in runs.items():
-            r.run(steps if name == "one_env" else max(4, steps // r.n))
+            r.run(steps if name == "one_env" else max(4, steps // max(r.n, r.episodes)))
     out = {name: _med(r) for name, r in runs.items()}
     out["async2"] = async_rate(128, steps // 2, repeats)
     for r in runs.values():
@@ -125,6 +145,9 @@ def vector_section(steps: int, repeats: int) -> dict:
     out["memory_per_extra_env_mb"] = round((mem[16] - mem[1]) / 15 / 2**20, 3)
     one = out["one_env"]["env_steps_per_s"]
     out["vector16_over_one_env"] = round(out["vector16"]["env_steps_per_s"] / one, 3)
+    out["vector16_over_one_env_same_episodes"] = round(
+        out["vector16"]["env_steps_per_s"] / out["one_env_same_episodes"]["env_steps_per_s"], 3
+    )
     out["vector16_over_async2"] = round(
         out["vector16"]["env_steps_per_s"] / out["async2"]["env_steps_per_s"], 3
     )
@@ -207,10 +230,12 @@ def sizes_section(steps: int, repeats: int, sizes, cameras) -> dict:
     for size in sizes:
         for v in cameras:
             one, exact, vec = Stepper(1, size, v), Stepper(1, size, v, tail_stride=0), Stepper(16, size, v)
+            same = Stepper(1, size, v, episodes=16)
             mj = MujocoRun(size, cameras=v)
             for _ in range(repeats):
                 one.run(steps)
                 exact.run(steps)
+                same.run(max(2, steps // 16))
                 vec.run(max(2, steps // 16))
                 mj.run(max(10, steps // 2))
             rows.append({
@@ -220,9 +245,12 @@ def sizes_section(steps: int, repeats: int, sizes, cameras) -> dict:
                 "vector16_env_steps_per_s": round(vec.median(), 1),
                 "mujoco_steps_per_s": round(float(np.median(mj.rates)), 1),
                 "vector16_over_one_env": round(vec.median() / one.median(), 3),
+                "one_env_same_episodes_steps_per_s": round(same.median(), 1),
+                "vector16_over_one_env_same_episodes": round(vec.median() / same.median(), 3),
             })  # fmt: skip
             one.env.close()
             exact.env.close()
+            same.env.close()
             vec.env.close()
             mj.renderer.close()
             print(json.dumps(rows[-1]), flush=True)

@@ -6,7 +6,8 @@ re-projects only the objects whose pose changed and recomposites only the 16x16 
 object touches before or after its move; every other tile keeps its pixels. A recomposited
 tile merges the background and object lists by depth exactly as a stable sort of the scene
 ``[background, objects...]`` would, and uses the renderer's single per-pixel routine, so the
-result equals a full ``dsg_gym.splat.rasterize`` of the composed scene bit for bit (tested).
+result equals a full ``dsg_gym.splat.rasterize`` of the composed scene bit for bit (tested), unless
+background tail tables are on (``tail_stride`` > 0: :mod:`dsg_gym.splat.numba_tails`).
 
 Channels are composited only when asked for: RGB (3, from SH evaluated per camera, view
 directions taken into each object's frame), the object-id weights (K+1, one-hot labels: 0 is
@@ -156,9 +157,9 @@ class SceneRenderer:
         tail_stride: 0 (default): every recomposited tile is merged exactly, so the images equal a full render
             bit for bit. N > 0: behind a tile's last object Gaussian the background is taken from per-tile tail
             tables (:mod:`dsg_gym.splat.numba_tails`: checkpoints every N entries of the tile's background list,
-            built the first time an object reaches the tile); faster, and within float32 rounding of the exact
-            merge (an uint8 colour or a mask id can differ where a value sits on a rounding boundary).
-            Memory: up to (D + 1) 4 KB per checkpoint, D the composited channels.
+            built the first time an object reaches the tile); faster. The images differ from the exact merge
+            only where the ``t_min`` cut-off falls differently (with ``t_min`` 0: float32 rounding); see
+            docs/renderer.md. Memory: up to (D + 1) KiB per checkpoint, D the composited channels.
         parallel: run the kernels on numba's threads. ``None``: where threads are allowed (a main process,
             not one started by ``multiprocessing`` such as a vector-env worker), each render takes the threaded
             or the single-threaded kernels, whichever has been faster lately
@@ -250,7 +251,7 @@ class SceneRenderer:
         self._state = None  # (channels key, poses, object arrays, buffers)
         self._bg_lists = {}  # layout -> the background's packed tile lists
         self._bg_render = None  # (layout, accumulators, transmittance) of the background alone
-        self._bg_tails = None  # (layout, offsets, colours, transmittance, built) of the tail tables
+        self._bg_tails = None  # ((layout, stride), offsets, colours, transmittance, built) of the tail tables
 
     # ----------------------------------------------------------------------------------------
     def _channels(self, rgb: bool, mask: bool, depth: bool) -> tuple[int, int, int, int]:
@@ -423,10 +424,11 @@ class SceneRenderer:
         touched only as tiles are built) and filled tile by tile as objects reach them."""
         if self.tail_stride <= 0:
             return self._no_tails(layout)
-        if self._bg_tails is None or self._bg_tails[0] != layout:
+        key = (layout, self.tail_stride)
+        if self._bg_tails is None or self._bg_tails[0] != key:
             off = ntails.tail_offsets(self._bg_bins[0], self.tail_stride)
             D = max(layout[0], 1)
-            self._bg_tails = (layout, off, np.empty((off[-1], raster.TILE ** 2, D), np.float32),
+            self._bg_tails = (key, off, np.empty((off[-1], raster.TILE ** 2, D), np.float32),
                               np.empty((off[-1], raster.TILE ** 2), np.float32), np.zeros(off.size - 1, np.bool_))
         _, off, col, T, built = self._bg_tails
         todo = np.unique(np.asarray(tiles, np.int64) % built.size)

@@ -102,7 +102,7 @@ def test_tables_are_built_as_objects_reach_tiles_and_rebuild_the_same(world):
     assert built.sum() > first.sum()
     tiles = np.flatnonzero(built)
     col0, T0 = col.copy(), T.copy()
-    rec, rect, rows = r._background_lists(r._bg_tails[0])
+    rec, rect, rows = r._background_lists(r._bg_tails[0][0])
     ntails.build_tails_serial(tiles, rec, rect, rows, r._bg_bins[0], 32, off, r.tiles_x, r.tiles_y, r.width,
                               r.height, r._consts, col, T, 1)  # fmt: skip
     for ct in tiles:
@@ -113,7 +113,7 @@ def test_tables_are_built_as_objects_reach_tiles_and_rebuild_the_same(world):
     ct = tiles[0]
     v, t = divmod(ct, r.tiles_x * r.tiles_y)
     ty, tx = divmod(t, r.tiles_x)
-    bg_T = r.background_render(r._bg_tails[0])[1][v, ty * 16 : (ty + 1) * 16, tx * 16 : (tx + 1) * 16]
+    bg_T = r.background_render(r._bg_tails[0][0])[1][v, ty * 16 : (ty + 1) * 16, tx * 16 : (tx + 1) * 16]
     np.testing.assert_array_equal(T[off[ct]].reshape(16, 16)[: bg_T.shape[0], : bg_T.shape[1]], bg_T)
 
 
@@ -128,3 +128,17 @@ def test_tail_stride_is_checked_and_reaches_the_env():
         ValueError, match=r"unknown keys \['stride'\] \(alpha_min, t_min, sh_degree, tail_stride\)"
     ):
         gym.make("DSGWorld-v0", render_settings={"stride": 8})
+
+
+def test_changing_the_stride_rebuilds_the_tables(world):
+    """A renderer whose ``tail_stride`` changes renders as a new renderer with that stride."""
+    _, poses = world
+    moves = list(_moves(poses, 4, seed=5))
+    r, fresh = _renderer(world, 32), _renderer(world, 16)
+    for p in moves[:2]:
+        r.render(p)
+    r.tail_stride = 16
+    fresh.render(moves[1])
+    for p in moves[2:]:
+        np.testing.assert_array_equal(r.render(p).rgb, fresh.render(p).rgb)
+    assert r._bg_tails[0][1] == 16

@@ -11,9 +11,10 @@ table holds ``(C_tail, T_tail)`` for every pixel of a tile at every ``stride``-t
 (a checkpoint); the merge composites exactly up to the next checkpoint and then adds the table in one step.
 
 The result differs from the exact merge by float32 rounding and by where the transmittance cut-off falls (the
-tail stops at T_tail < t_min instead of T T_tail < t_min): a few 1e-6 in the accumulators, so an uint8 colour
-or a mask id can differ where a value sits on a rounding boundary. Every path that composites with the same
-tables (threaded or not, one scene or a batch) gives the same bits.
+tail stops at T_tail < t_min instead of T T_tail < t_min, and a Gaussian that would cross the cut-off is left
+out): with t_min = 0 by a few 1e-7 in the accumulators, with the env's t_min by a few uint8 levels on about 1 %
+of the pixels of the bundled world, no further from the uncut composite than the exact merge. Every path that
+composites with the same tables (threaded or not, one scene or a batch) gives the same bits.
 """
 
 from __future__ import annotations

@@ -22,9 +22,15 @@ from dsg_gym.envs.dsg_world import DEFAULT_WORLD, DSGWorldEnv
 EPISODE_STEPS = 500
 
 
-def _episode_digest(collision: str, steps: int, seed: int) -> str:
+def _episode_digest(collision: str, steps: int, seed: int, tail_stride: int | None = None) -> str:
+    settings = None if tail_stride is None else {"tail_stride": tail_stride}
     env = DSGWorldEnv(
-        width=64, height=64, cameras=[0, 3], obs=("rgb", "mask", "depth", "poses"), collision=collision
+        width=64,
+        height=64,
+        cameras=[0, 3],
+        obs=("rgb", "mask", "depth", "poses"),
+        collision=collision,
+        render_settings=settings,
     )
     rng = np.random.default_rng(seed)
     h = hashlib.sha256()
@@ -50,10 +56,11 @@ def _episode_digest(collision: str, steps: int, seed: int) -> str:
 NUMPY_ABOVE_AVX2 = "X86_V4 AVX512_ICL AVX512_SPR"
 
 
-def _digest_with_avx2_numpy(collision: str, steps: int, seed: int) -> str:
+def _digest_with_avx2_numpy(collision: str, steps: int, seed: int, tail_stride: int | None = None) -> str:
     code = (
         f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
-        f"from test_fingerprint import _episode_digest; print(_episode_digest({collision!r}, {steps}, {seed}))"
+        "from test_fingerprint import _episode_digest; "
+        f"print(_episode_digest({collision!r}, {steps}, {seed}, {tail_stride!r}))"
     )
     env = {**os.environ, "NPY_DISABLE_CPU_FEATURES": NUMPY_ABOVE_AVX2}
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
@@ -70,6 +77,11 @@ def test_fixed_episode_settle_is_bit_identical():
     assert _digest_with_avx2_numpy("settle", 60, seed=3) == EXPECTED["settle"]
 
 
+def test_fixed_episode_settle_with_the_exact_merge_is_bit_identical():
+    """The exact merge (no background tail tables) keeps the digest it had before the tables came in."""
+    assert _digest_with_avx2_numpy("settle", 60, seed=3, tail_stride=0) == EXPECTED["settle_exact_merge"]
+
+
 def test_bundled_world_rewrites_byte_identical():
     from dsg_gym.world import encode_world, load_world
 
@@ -81,6 +93,8 @@ def test_bundled_world_rewrites_byte_identical():
 
 
 EXPECTED = {
-    "reject": "52c11bf5d408cafedfb0ffd305e70418a6ae145a7c157df3b0d225294049360c",
-    "settle": "3ee84d88f8298fcd21d09f3b3ce724438e092971dca642c9ec2481c3f52c0529",
+    "reject": "4514c1b7f10fd495385dff2f417b3273e45722f58c3d232a240811159319bd25",
+    "settle": "0da8d1985edd83d6b99982b45997be6940009fa873ab429619992db2ec81be76",
+    # the env default before background tail tables (tail_stride 0 renders as it did)
+    "settle_exact_merge": "3ee84d88f8298fcd21d09f3b3ce724438e092971dca642c9ec2481c3f52c0529",
 }

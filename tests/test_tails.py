@@ -103,8 +103,8 @@ def test_tables_are_built_as_objects_reach_tiles_and_rebuild_the_same(world):
     tiles = np.flatnonzero(built)
     col0, T0 = col.copy(), T.copy()
     rec, rect, rows = r._background_lists(r._bg_tails[0][0])
-    ntails.build_tails_serial(tiles, rec, rect, rows, r._bg_bins[0], 32, off, r.tiles_x, r.tiles_y, r.width,
-                              r.height, r._consts, col, T, 1)  # fmt: skip
+    grid = (r.tiles_x, r.tiles_y, r.width, r.height)
+    ntails.build_tails_serial(tiles, (rec, rect, rows, r._bg_bins[0]), 32, (off, col, T), grid, r._consts, 1)
     for ct in tiles:
         k = slice(off[ct], off[ct + 1])
         np.testing.assert_array_equal(col[k], col0[k])

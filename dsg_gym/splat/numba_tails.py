@@ -53,22 +53,10 @@ def tail_offsets(a_off: np.ndarray, stride: int) -> np.ndarray:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _build_jobs(
-    jobs,
-    a_rec,
-    a_rect,
-    a_rows,
-    a_off,
-    stride,
-    tail_off,
-    tiles_x,
-    tiles_y,
-    width,
-    height,
-    consts,
-    tail_col,
-    tail_T,
-):
+def _build_jobs(jobs, background, stride, tables, grid, consts):
+    a_rec, a_rect, a_rows, a_off = background
+    tail_off, tail_col, tail_T = tables
+    tiles_x, tiles_y, width, height = grid
     D = tail_col.shape[2]
     T = tiles_x * tiles_y
     acc = np.empty((TILE * TILE, D), tail_col.dtype)
@@ -96,55 +84,25 @@ def _build_jobs(
 
 
 @nb.njit(parallel=True, cache=True)
-def build_tails(
-    tiles,
-    a_rec,
-    a_rect,
-    a_rows,
-    a_off,
-    stride,
-    tail_off,
-    tiles_x,
-    tiles_y,
-    width,
-    height,
-    consts,
-    tail_col,
-    tail_T,
-    nthreads,
-):
+def build_tails(tiles, background, stride, tables, grid, consts, nthreads):
     """Fill the tail tables of ``tiles`` (background tile indices ``c * T + t``), in parallel over their
     checkpoints: table ``tail_off[ct] + q`` is the background list of tile ``ct`` composited alone from entry
-    ``q * stride`` (accumulators [256, D] into tail_col, transmittance [256] into tail_T). The background as
-    :func:`~dsg_gym.splat.numba_incremental.composite_merged`'s ``a`` set."""
-    jobs = _jobs(tiles, tail_off)
+    ``q * stride`` (accumulators [256, D] into tail_col, transmittance [256] into tail_T).
+
+    ``background``: (a_rec, a_rect, a_rows, a_off), the background as
+    :func:`~dsg_gym.splat.numba_incremental.composite_merged`'s ``a`` set; ``tables``: (tail_off [C*T+1]
+    (:func:`tail_offsets`), tail_col [M, 256, D], tail_T [M, 256]); ``grid``: (tiles_x, tiles_y, width, height);
+    ``consts``: the compositing constants."""
+    jobs = _jobs(tiles, tables[0])
     P = max(1, min(nthreads, jobs.shape[0]))
     for w in nb.prange(P):
-        _build_jobs(jobs[w::P], a_rec, a_rect, a_rows, a_off, stride, tail_off, tiles_x, tiles_y, width, height,
-                    consts, tail_col, tail_T)  # fmt: skip
+        _build_jobs(jobs[w::P], background, stride, tables, grid, consts)
 
 
 @nb.njit(cache=True)
-def build_tails_serial(
-    tiles,
-    a_rec,
-    a_rect,
-    a_rows,
-    a_off,
-    stride,
-    tail_off,
-    tiles_x,
-    tiles_y,
-    width,
-    height,
-    consts,
-    tail_col,
-    tail_T,
-    nthreads,
-):
+def build_tails_serial(tiles, background, stride, tables, grid, consts, nthreads):
     """:func:`build_tails` on the calling thread (the same tables)."""
-    _build_jobs(_jobs(tiles, tail_off), a_rec, a_rect, a_rows, a_off, stride, tail_off, tiles_x, tiles_y, width,
-                height, consts, tail_col, tail_T)  # fmt: skip
+    _build_jobs(_jobs(tiles, tables[0]), background, stride, tables, grid, consts)
 
 
 @nb.njit(cache=True)

@@ -93,8 +93,8 @@ def test_bundled_world_rewrites_byte_identical():
 
 
 EXPECTED = {
-    "reject": "4514c1b7f10fd495385dff2f417b3273e45722f58c3d232a240811159319bd25",
-    "settle": "0da8d1985edd83d6b99982b45997be6940009fa873ab429619992db2ec81be76",
+    "reject": "ce8f5c5f77aec3f37dc29758359811b185a1c524508b6b1852534078161136af",
+    "settle": "89f3e1ced817485edec805de450b31726dfa48c6c5d6ffed8a1824cde8ba52e2",
     # the env default before background tail tables (tail_stride 0 renders as it did)
     "settle_exact_merge": "3ee84d88f8298fcd21d09f3b3ce724438e092971dca642c9ec2481c3f52c0529",
 }

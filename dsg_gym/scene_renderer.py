@@ -436,8 +436,9 @@ class SceneRenderer:
         if todo.size:
             rec, rect, rows = self._background_lists(layout)
             build = ntails.build_tails if par else ntails.build_tails_serial
-            build(todo, (rec, rect, rows, self._bg_bins[0]), self.tail_stride, (off, col, T),
-                  (self.tiles_x, self.tiles_y, self.width, self.height), self._consts, nb.get_num_threads() if par else 1)
+            grid = (self.tiles_x, self.tiles_y, self.width, self.height)
+            build(todo, (rec, rect, rows, self._bg_bins[0]), self.tail_stride, (off, col, T), grid, self._consts,
+                  nb.get_num_threads() if par else 1)
             built[todo] = True
         return self.tail_stride, off, col, T
 

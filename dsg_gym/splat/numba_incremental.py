@@ -192,7 +192,8 @@ def _composite_chunk(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_co
             longest = max(longest, b_off[tiles[m] + 1] - b_off[tiles[m]])
     _composite_tiles(tiles, a_rec, a_rect, a_rows, a_off, b_m2, b_cn, b_op, b_col, b_rect, b_depth, b_off, b_gauss,
                      tiles_x, tiles_y, width, height, consts, use_cache,
-                     (bg_colors, bg_T, tail_stride, tail_off, tail_col, tail_T), out_colors, out_T, np.empty((TILE * TILE, D), out_colors.dtype), np.empty(TILE * TILE, out_colors.dtype),
+                     (bg_colors, bg_T, tail_stride, tail_off, tail_col, tail_T), out_colors, out_T,
+                     np.empty((TILE * TILE, D), out_colors.dtype), np.empty(TILE * TILE, out_colors.dtype),
                      np.empty(TILE, np.int64), np.empty(TILE, out_colors.dtype), np.empty(TILE, out_colors.dtype),
                      np.empty((longest, TILE), np.uint16), np.empty(TILE, np.int64))
 

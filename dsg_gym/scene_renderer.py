@@ -34,6 +34,7 @@ from .splat.threads import ThreadChooser, min_parallel_work, parallel_allowed
 from .splat_options import DEFAULT_EPS2D, check_splat_options
 
 _FIXED_WORK = 8  # a render's fixed cost (projection, binning, Python) in units of one recomposited tile
+_NO_TAILS: dict[int, tuple] = {}  # channel count -> the composite kernels' empty tail arguments (read-only)
 
 
 @dataclass(frozen=True)
@@ -411,10 +412,12 @@ class SceneRenderer:
         return self._bg_render[1], self._bg_render[2]
 
     def _no_tails(self, layout) -> tuple:
-        """The composite kernels' tail arguments for an exact merge."""
+        """The composite kernels' tail arguments for an exact merge (empty tables, made once per channel count)."""
         D = max(layout[0], 1)
-        return 0, np.zeros(1, np.int64), np.zeros((0, raster.TILE ** 2, D), np.float32), \
-            np.zeros((0, raster.TILE ** 2), np.float32)
+        if D not in _NO_TAILS:
+            _NO_TAILS[D] = (0, np.zeros(1, np.int64), np.zeros((0, raster.TILE ** 2, D), np.float32),
+                            np.zeros((0, raster.TILE ** 2), np.float32))
+        return _NO_TAILS[D]
 
     def background_tails(self, layout, tiles: np.ndarray, par: bool) -> tuple:
         """The composite kernels' tail arguments ``(stride, offsets, colours, transmittance)`` with the tables of

@@ -289,7 +289,7 @@ def test_the_background_points_are_written_and_start_training(photos, estimated)
     on_table = (np.abs(xyz[:, 2]) < 0.02) & np.all((xyz[:, :2] > lo[:2]) & (xyz[:, :2] < hi[:2]), axis=1)
     assert on_table.mean() > 0.4  # most features lie on the table top, at z = 0 of the table frame
     assert rgb.std() > 0.05 and not np.all(rgb == 0.5)  # coloured from the photos, not left grey
-    # training on the capture starts from these points, then the table top, the objects' hulls, random points
+    # training on the capture starts from these points, then its stereo depth, the objects' hulls, random points
     cfg = TrainConfig(preset=get_preset("quick"), state="state1", holdout_every=0)
     data = load_training_data(out, cfg)
     np.testing.assert_array_equal(data.points[0], xyz)
@@ -298,4 +298,30 @@ def test_the_background_points_are_written_and_start_training(photos, estimated)
     np.testing.assert_allclose(means[: len(xyz)], xyz, atol=1e-6)
     assert len(means) == t.preset.num_init_points
     rest = means[len(xyz) :]
-    assert (rest[:, 2] == 0.0).mean() > 0.05  # the table top of the capture's frame
+    assert (np.abs(rest[:, 2]) < 0.01).mean() > 0.2  # stereo depth: most of it the table top at z = 0
+
+
+def test_stereo_depth_is_written_and_agrees_with_the_truth(photos, estimated):
+    out, report = estimated
+    cap = load_capture(out, ["state1"])
+    truth = load_capture(photos / "ground_truth", ["state1"])
+    est, tru = cap.states["state1"], truth.states["state1"]
+    assert est.depths is not None and report["stereo_depth_coverage"]["state1"] > 0.3
+    by_stem = {p.stem: i for i, p in enumerate(tru.image_paths)}
+    ratios = []
+    for i, p in enumerate(est.image_paths):
+        d, g = est.depths[i].numpy(), tru.depths[by_stem[p.stem]].numpy()
+        ok = (d > 0) & (g > 0)
+        ratios.append(d[ok] / g[ok])
+    r = np.concatenate(ratios)
+    r = r / np.median(r)  # the estimated frame's unit against metres: one scale for every pixel
+    assert np.mean(np.abs(r - 1.0) < 0.03) > 0.9
+
+
+def test_no_stereo_writes_no_depth(photos, tmp_path, capsys):
+    out = tmp_path / "nodepth"
+    assert capture_cli.main([str(photos), "--out", str(out), "--quiet", "--no-stereo"]) == 0
+    assert not (out / "state1" / "depth").exists()
+    frames = json.loads((out / "state1" / "transforms.json").read_text())["frames"]
+    assert not any("depth_path" in f for f in frames)
+    assert json.loads((out / "report.json").read_text())["stereo_depth_coverage"] is None

@@ -8,6 +8,8 @@
     OUT/<state>/transforms.json    pinhole intrinsics + registered frames (OpenGL camera-to-world)
     OUT/<state>/images/<stem>.png  undistorted photos
     OUT/<state>/masks/<stem>.png   undistorted object-id masks
+    OUT/<state>/depth/<stem>.png   depth from multi-view stereo (uint16, 0 = none; :mod:`.mvs`), unless
+                                   ``stereo=False``
     OUT/points3d.ply               the background's structure-from-motion points (table frame, coloured)
     OUT/report.json                registered views, reprojection error, table fit, per-object estimates, scale
 
@@ -31,6 +33,7 @@ from tqdm import tqdm
 from train_world.capture.cameras import GL_TO_CV
 from train_world.capture.features import ViewFeatures, extract_view_features
 from train_world.capture.format import (
+    DEPTH_SCALE,
     FORMAT_NAME,
     FORMAT_VERSION,
     atomic_write_bytes,
@@ -50,6 +53,7 @@ from train_world.capture.marker import (
     marker_scale,
 )
 from train_world.capture.motions import ObjectMotion, estimate_object_motion
+from train_world.capture.mvs import stereo_depths_at_size
 from train_world.capture.photos import (
     PHOTO_STATES,
     PhotoCapture,
@@ -162,6 +166,7 @@ def build_capture(
     marker_size: float | None = None,
     marker_id: int | None = None,
     overwrite: bool = False,
+    stereo: bool = True,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> dict:
@@ -170,7 +175,8 @@ def build_capture(
     naming the file or object; an existing non-empty ``out`` raises ``FileExistsError`` unless ``overwrite``.
 
     Metric scale: ``metres_per_unit``, or ``marker_size`` (the black square's edge in metres of an ArUco
-    ``DICT_4X4_50`` marker lying in the scene, id ``marker_id`` or the lowest id seen; :mod:`.marker`)."""
+    ``DICT_4X4_50`` marker lying in the scene, id ``marker_id`` or the lowest id seen; :mod:`.marker`).
+    ``stereo``: depth maps of every view from multi-view stereo, which training starts from (:mod:`.mvs`)."""
     if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
         raise ValueError(f"metres per unit must be a positive number, got {metres_per_unit}")
     if marker_size is not None and not (np.isfinite(marker_size) and marker_size > 0):
@@ -240,11 +246,15 @@ def build_capture(
                 f"scale: {scale_info['source']}; {metres_per_unit:.5f} m per unit, corners {ms.rms_px:.2f} px rms"
             )
         frame = table_frame(plane, sfm.points, obj_centres, centres, metres_per_unit)
-        report = _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info)
+        t = time.perf_counter()
+        depth = _write_depths(stage, sfm, unds, frame, progress) if stereo else None
+        t_depth = time.perf_counter() - t
+        report = _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info, depth)
         report["timings_s"] = {
             **{k: round(v, 2) for k, v in sfm.timings.items()},
             "undistort_and_features_s": round(t_views, 2),
             "motions_s": round(t_motions, 2),
+            "stereo_depth_s": round(t_depth, 2),
             "total_s": round(time.perf_counter() - t_start, 2),
         }
         atomic_write_json(stage / "report.json", report)
@@ -265,7 +275,36 @@ def _write_points(stage: Path, sfm: SfmResult, unds: dict, frame) -> int:
     return int(len(xyz))
 
 
-def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info=None) -> dict:
+def _write_depths(stage: Path, sfm: SfmResult, unds: dict, frame, progress: bool) -> dict[str, float]:
+    """Every registered view's depth in the table frame by multi-view stereo within its state (:mod:`.mvs`),
+    written to ``stage/<state>/depth/<stem>.png`` (uint16 in ``DEPTH_SCALE`` units, 0 = none: also depths
+    the format cannot hold); returns each state's share of pixels with depth."""
+    points = frame.points(sfm.points)
+    coverage = {}
+    total = sum(len(sfm.registered[s]) for s in PHOTO_STATES)
+    with tqdm(total=total, desc="dsg-capture: stereo depth", unit="photo", disable=not progress) as bar:
+        for s in PHOTO_STATES:
+            stems = sfm.registered[s]
+            images = []
+            for stem in stems:
+                with Image.open(stage / s / "images" / f"{stem}.png") as im:
+                    images.append(np.asarray(im.convert("RGB")))
+            w2c = np.stack(
+                [np.linalg.inv(frame.camera_to_world(sfm.world_to_camera[f"{s}/{k}"])) for k in stems]
+            )
+            Ks = np.repeat(unds[s].K[None], len(stems), axis=0)
+            depth = stereo_depths_at_size(np.stack(images), Ks, w2c, points, progress=lambda: bar.update(1))
+            units = np.rint(depth.astype(np.float64) / DEPTH_SCALE)
+            units = np.where(units <= np.iinfo(np.uint16).max, units, 0).astype(np.uint16)
+            for stem, d in zip(stems, units, strict=True):
+                atomic_write_bytes(stage / s / "depth" / f"{stem}.png", encode_png(d))
+            coverage[s] = round(float((units > 0).mean()), 4)
+    return coverage
+
+
+def _write(
+    capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info=None, depth=None
+) -> dict:
     poses, rel, objects_report = {"state1": [], "state2": []}, [], []
     for o in capture.objects:
         m = motions[o.id]
@@ -284,7 +323,8 @@ def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, s
         frames = []
         for stem in sfm.registered[s]:
             c2w_gl = frame.camera_to_world(sfm.world_to_camera[f"{s}/{stem}"]) @ GL_TO_CV
-            frames.append(frame_entry(f"images/{stem}.png", c2w_gl, f"masks/{stem}.png"))
+            d_path = f"depth/{stem}.png" if depth is not None else None
+            frames.append(frame_entry(f"images/{stem}.png", c2w_gl, f"masks/{stem}.png", d_path))
         doc = transforms_header(und.width, und.height, und.K[0, 0], und.K[1, 1], und.K[0, 2], und.K[1, 2])
         doc["frames"] = frames
         atomic_write_json(stage / s / "transforms.json", doc)
@@ -330,6 +370,7 @@ def _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, s
         },
         "mean_reprojection_error_px": round(sfm.mean_reprojection_error, 4),
         "background_points": int(len(sfm.points)),
+        "stereo_depth_coverage": depth,
         "cameras": {
             s: {
                 "model": c.model,

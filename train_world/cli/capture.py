@@ -66,6 +66,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--marker-id", type=int, default=None, help="the marker's id (default: the lowest id seen)"
     )
+    p.add_argument(
+        "--no-stereo",
+        action="store_true",
+        help="write no depth maps (by default every view gets depth from multi-view stereo, which training "
+        "starts from)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
@@ -101,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             marker_size=args.marker_size,
             marker_id=args.marker_id,
             overwrite=args.overwrite,
+            stereo=not args.no_stereo,
             progress=not args.quiet,
             log=None if args.quiet else say,
         )
@@ -126,6 +133,7 @@ def _extract(args) -> int:
             args.photos,
             args.extract_frames,
             overwrite=args.overwrite,
+            stereo=not args.no_stereo,
             progress=not args.quiet,
             log=None if args.quiet else (lambda m: print(f"dsg-capture: {m}", file=sys.stderr, flush=True)),
         )

@@ -122,7 +122,7 @@ class Trainer:
     # ------------------------------------------------------------------ initialisation
     def _initial_field(self) -> tuple[SegmentedField, Classifier]:
         d, p = self.data, self.preset
-        if d.depths is not None and bool((d.depths > 0).any()):
+        if d.depths is not None and bool((d.depths > 0).any()):  # measured depth, or stereo's (with holes)
             pts, cols, ids = points_from_depth(
                 d.images, d.depths, d.viewmats, d.Ks, d.classes, p.num_init_points, self.rng
             )
@@ -153,13 +153,13 @@ class Trainer:
                 )
             else:
                 pts, cols, ids = points_in_bounds(bounds, p.num_init_points, self.rng)
-            if d.points is not None and len(d.points[0]):  # the capture's sparse points lead, as in 3DGS
-                sp, sc = d.points
-                sp, sc = sp[: p.num_init_points], sc[: p.num_init_points]
-                rest = p.num_init_points - len(sp)
-                pts = np.concatenate([sp, pts[:rest]])
-                cols = np.concatenate([sc.astype(np.float64), cols[:rest]])
-                ids = np.concatenate([np.zeros(len(sp), np.int64), ids[:rest]])
+        if d.points is not None and len(d.points[0]):  # the capture's sparse points lead, as in 3DGS
+            sp, sc = d.points
+            sp, sc = sp[: p.num_init_points], sc[: p.num_init_points]
+            rest = p.num_init_points - len(sp)
+            pts = np.concatenate([sp, pts[:rest]])
+            cols = np.concatenate([sc.astype(np.float64), cols[:rest]])
+            ids = np.concatenate([np.zeros(len(sp), np.int64), ids[:rest]])
         field, codes = initial_field(
             pts,
             cols,

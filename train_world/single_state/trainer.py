@@ -123,9 +123,11 @@ class Trainer:
     def _initial_field(self) -> tuple[SegmentedField, Classifier]:
         d, p = self.data, self.preset
         if d.depths is not None and bool((d.depths > 0).any()):  # measured depth, or stereo's (with holes)
-            pts, cols, ids = points_from_depth(
-                d.images, d.depths, d.viewmats, d.Ks, d.classes, p.num_init_points, self.rng
-            )
+            # as many points per pixel with depth as a complete depth map gets: depth with holes starts with
+            # fewer, which leaves the field's Gaussian cap room to grow where it has none (walls, floor)
+            cover = float((d.depths > 0).double().mean())
+            n = max(1, int(round(cover * p.num_init_points)))
+            pts, cols, ids = points_from_depth(d.images, d.depths, d.viewmats, d.Ks, d.classes, n, self.rng)
         else:
             bounds = scene_bounds_from_cameras(d.viewmats, d.Ks, d.width)
             if d.table_bounds is not None:  # tabletop: the table box up to its half-width in height

@@ -97,3 +97,14 @@ def test_neighbours_within_the_angle_range():
         assert set(n) <= set(ok)
         assert len(n) == min(3, len(ok))
         assert list(n) == sorted(n, key=lambda j: abs(ang[i, j] - 15.0))
+
+
+def test_too_few_points_give_no_depth():
+    images, Ks, w2c, _, pts = _scene(n=3)
+    calls = []
+    d = stereo_depths(
+        images, Ks, w2c, pts[:5], MvsConfig(neighbours=2, best_of=1), progress=lambda: calls.append(1)
+    )
+    assert d.shape == images.shape[:3] and not (d > 0).any() and len(calls) == 3
+    with pytest.raises(ValueError, match="two views"):
+        stereo_depths(images[:1], Ks[:1], w2c[:1], pts)

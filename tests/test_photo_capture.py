@@ -289,7 +289,7 @@ def test_the_background_points_are_written_and_start_training(photos, estimated)
     on_table = (np.abs(xyz[:, 2]) < 0.02) & np.all((xyz[:, :2] > lo[:2]) & (xyz[:, :2] < hi[:2]), axis=1)
     assert on_table.mean() > 0.4  # most features lie on the table top, at z = 0 of the table frame
     assert rgb.std() > 0.05 and not np.all(rgb == 0.5)  # coloured from the photos, not left grey
-    # training on the capture starts from these points, then its stereo depth, the objects' hulls, random points
+    # training on the capture starts from these points, then the table top, the objects' hulls, random points
     cfg = TrainConfig(preset=get_preset("quick"), state="state1", holdout_every=0)
     data = load_training_data(out, cfg)
     np.testing.assert_array_equal(data.points[0], xyz)
@@ -298,11 +298,18 @@ def test_the_background_points_are_written_and_start_training(photos, estimated)
     np.testing.assert_allclose(means[: len(xyz)], xyz, atol=1e-6)
     assert len(means) == t.preset.num_init_points
     rest = means[len(xyz) :]
-    assert (np.abs(rest[:, 2]) < 0.01).mean() > 0.2  # stereo depth: most of it the table top at z = 0
+    assert (rest[:, 2] == 0.0).mean() > 0.05  # the table top of the capture's frame
 
 
-def test_stereo_depth_is_written_and_agrees_with_the_truth(photos, estimated):
-    out, report = estimated
+@pytest.fixture(scope="module")
+def stereo(photos, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("stereo") / "estimated"
+    assert capture_cli.main([str(photos), "--out", str(out), "--quiet", "--stereo"]) == 0
+    return out, json.loads((out / "report.json").read_text())
+
+
+def test_stereo_depth_is_written_and_agrees_with_the_truth(photos, stereo):
+    out, report = stereo
     cap = load_capture(out, ["state1"])
     truth = load_capture(photos / "ground_truth", ["state1"])
     est, tru = cap.states["state1"], truth.states["state1"]
@@ -318,10 +325,26 @@ def test_stereo_depth_is_written_and_agrees_with_the_truth(photos, estimated):
     assert np.mean(np.abs(r - 1.0) < 0.03) > 0.9
 
 
-def test_no_stereo_writes_no_depth(photos, tmp_path, capsys):
-    out = tmp_path / "nodepth"
-    assert capture_cli.main([str(photos), "--out", str(out), "--quiet", "--no-stereo"]) == 0
+def test_no_depth_without_stereo(estimated):
+    out, report = estimated
     assert not (out / "state1" / "depth").exists()
     frames = json.loads((out / "state1" / "transforms.json").read_text())["frames"]
     assert not any("depth_path" in f for f in frames)
-    assert json.loads((out / "report.json").read_text())["stereo_depth_coverage"] is None
+    assert report["stereo_depth_coverage"] is None and report["timings_s"]["stereo_depth_s"] < 0.01
+
+
+def test_training_on_stereo_depth_starts_in_proportion_to_it(stereo):
+    from train_world.single_state.data import load_training_data
+    from train_world.single_state.presets import TrainConfig, get_preset
+    from train_world.single_state.trainer import Trainer
+
+    out, _ = stereo
+    cfg = TrainConfig(preset=get_preset("quick"), state="state1", holdout_every=0)
+    data = load_training_data(out, cfg)
+    n_sparse = len(data.points[0])
+    cover = float((data.depths > 0).double().mean())
+    assert 0.2 < cover < 1.0  # bare walls and plain objects have no stereo depth
+    means = Trainer(data, cfg).field.means.detach().double().numpy()
+    n = get_preset("quick").num_init_points
+    assert len(means) == n_sparse + min(round(cover * n), n - n_sparse)
+    assert (np.abs(means[n_sparse:, 2]) < 0.01).mean() > 0.2  # much of it on the table top, z = 0

@@ -98,3 +98,30 @@ def test_no_object_in_any_view_gives_no_hull_points(data):
         _box(d), 1000, d.images, d.classes * 0, d.viewmats, d.Ks, np.random.default_rng(3)
     )
     assert P.shape == (0, 3) and cols.shape == (0, 3) and ids.shape == (0,)
+
+
+def test_depth_with_holes_starts_with_points_in_proportion(tmp_path_factory):
+    cap = tiny_capture(tmp_path_factory.mktemp("holes"), "four_mixed", size=64, views=16)
+    cfg = TrainConfig(preset=get_preset("quick"), state="state1", holdout_every=0)
+    d = load_training_data(cap, cfg)
+    n = get_preset("quick").num_init_points
+    full = Trainer(d, cfg).field.means.detach().double().numpy()
+    assert len(full) == n  # a complete depth map: the whole budget, as always
+    depths = d.depths.clone()
+    depths[:, :, : depths.shape[2] // 2] = 0.0  # stereo-like holes: the left half of every view
+    holes = dataclasses.replace(d, depths=depths)
+    cover = float((depths > 0).double().mean())
+    means = Trainer(holes, cfg).field.means.detach().double().numpy()
+    assert len(means) == round(cover * n) < n
+    # every point comes from a pixel that has depth: in its view's right half, on the surface seen there
+    vm, K = holes.viewmats.double().numpy(), holes.Ks.double().numpy()
+    seen_right = np.zeros(len(means), bool)
+    for i in range(len(vm)):
+        cam = means @ vm[i][:3, :3].T + vm[i][:3, 3]
+        u = K[i][0, 0] * cam[:, 0] / cam[:, 2] + K[i][0, 2]
+        v = K[i][1, 1] * cam[:, 1] / cam[:, 2] + K[i][1, 2]
+        ok = (cam[:, 2] > 0) & (u >= 32) & (u < 64) & (v >= 0) & (v < 64)
+        ui, vi = np.clip(u.astype(int), 0, 63), np.clip(v.astype(int), 0, 63)
+        z = depths[i].numpy()[vi, ui]
+        seen_right |= ok & (np.abs(z - cam[:, 2]) < 1e-3 + 0.01 * z)
+    assert seen_right.mean() > 0.99

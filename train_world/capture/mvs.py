@@ -193,8 +193,14 @@ def stereo_depths(
     if V < 2:
         raise ValueError("stereo depth needs at least two views")
     grey = np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in images]).astype(np.float32) / 255.0
-    nbrs = select_neighbours(w2c, np.median(points, axis=0), config)
     raw = np.zeros(grey.shape, np.float32)
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(points) < 10:  # no depth range to sweep
+        if progress is not None:
+            for _ in range(V):
+                progress()
+        return raw
+    nbrs = select_neighbours(w2c, np.median(points, axis=0), config)
     for i in range(V):
         zs = (points @ w2c[i][:3, :3].T + w2c[i][:3, 3])[:, 2]
         zs = zs[zs > 0]

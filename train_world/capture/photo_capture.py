@@ -8,8 +8,7 @@
     OUT/<state>/transforms.json    pinhole intrinsics + registered frames (OpenGL camera-to-world)
     OUT/<state>/images/<stem>.png  undistorted photos
     OUT/<state>/masks/<stem>.png   undistorted object-id masks
-    OUT/<state>/depth/<stem>.png   depth from multi-view stereo (uint16, 0 = none; :mod:`.mvs`), unless
-                                   ``stereo=False``
+    OUT/<state>/depth/<stem>.png   with ``stereo``: depth from multi-view stereo (uint16, 0 = none; :mod:`.mvs`)
     OUT/points3d.ply               the background's structure-from-motion points (table frame, coloured)
     OUT/report.json                registered views, reprojection error, table fit, per-object estimates, scale
 
@@ -166,7 +165,7 @@ def build_capture(
     marker_size: float | None = None,
     marker_id: int | None = None,
     overwrite: bool = False,
-    stereo: bool = True,
+    stereo: bool = False,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> dict:
@@ -176,7 +175,8 @@ def build_capture(
 
     Metric scale: ``metres_per_unit``, or ``marker_size`` (the black square's edge in metres of an ArUco
     ``DICT_4X4_50`` marker lying in the scene, id ``marker_id`` or the lowest id seen; :mod:`.marker`).
-    ``stereo``: depth maps of every view from multi-view stereo, which training starts from (:mod:`.mvs`)."""
+    ``stereo``: depth maps of every view from multi-view stereo (:mod:`.mvs`); training on the capture then
+    starts from them instead of the table top, hulls and random points."""
     if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
         raise ValueError(f"metres per unit must be a positive number, got {metres_per_unit}")
     if marker_size is not None and not (np.isfinite(marker_size) and marker_size > 0):

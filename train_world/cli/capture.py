@@ -67,10 +67,10 @@ def _parser() -> argparse.ArgumentParser:
         "--marker-id", type=int, default=None, help="the marker's id (default: the lowest id seen)"
     )
     p.add_argument(
-        "--no-stereo",
+        "--stereo",
         action="store_true",
-        help="write no depth maps (by default every view gets depth from multi-view stereo, which training "
-        "starts from)",
+        help="also write a depth map of every view from multi-view stereo (0 where none, e.g. bare walls); "
+        "training on the capture then starts from it",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             marker_size=args.marker_size,
             marker_id=args.marker_id,
             overwrite=args.overwrite,
-            stereo=not args.no_stereo,
+            stereo=args.stereo,
             progress=not args.quiet,
             log=None if args.quiet else say,
         )
@@ -133,7 +133,7 @@ def _extract(args) -> int:
             args.photos,
             args.extract_frames,
             overwrite=args.overwrite,
-            stereo=not args.no_stereo,
+            stereo=args.stereo,
             progress=not args.quiet,
             log=None if args.quiet else (lambda m: print(f"dsg-capture: {m}", file=sys.stderr, flush=True)),
         )

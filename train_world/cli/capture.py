@@ -133,7 +133,6 @@ def _extract(args) -> int:
             args.photos,
             args.extract_frames,
             overwrite=args.overwrite,
-            stereo=args.stereo,
             progress=not args.quiet,
             log=None if args.quiet else (lambda m: print(f"dsg-capture: {m}", file=sys.stderr, flush=True)),
         )

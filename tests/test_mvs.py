@@ -12,7 +12,6 @@ from train_world.capture.mvs import (  # noqa: E402
     MvsConfig,
     select_neighbours,
     stereo_depths,
-    stereo_depths_at_size,
 )
 
 SIZE = 64
@@ -75,9 +74,9 @@ def test_flat_colour_gets_no_depth():
     assert not (d > 0).any()
 
 
-def test_reduced_size_returns_full_size_depth():
+def test_large_photos_are_reduced_and_depth_comes_back_full_size():
     images, Ks, w2c, truth, pts = _scene(size=96)
-    d = stereo_depths_at_size(images, Ks, w2c, pts, MvsConfig(neighbours=4, best_of=2, max_size=48))
+    d = stereo_depths(images, Ks, w2c, pts, MvsConfig(neighbours=4, best_of=2, max_size=48))
     assert d.shape == truth.shape
     valid = d > 0
     assert valid.mean() > 0.3

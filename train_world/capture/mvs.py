@@ -27,7 +27,6 @@ __all__ = [
     "plane_sweep_depth",
     "select_neighbours",
     "stereo_depths",
-    "stereo_depths_at_size",
 ]
 
 
@@ -174,24 +173,9 @@ def consistent_depths(
     return out
 
 
-def stereo_depths(
-    images: np.ndarray,
-    Ks: np.ndarray,
-    w2c: np.ndarray,
-    points: np.ndarray,
-    config: MvsConfig | None = None,
-    progress=None,
-) -> np.ndarray:
-    """Depth maps ``[V,H,W]`` float32 (0 = no depth) of calibrated views.
-
-    ``images [V,H,W,3]`` uint8 RGB; ``Ks [V,3,3]``; ``w2c [V,4,4]`` OpenCV world-to-camera; ``points [P,3]``:
-    sparse scene points (structure from motion) that bound each view's depth range (its 1st-99th
-    percentile, times ``config.range_margin``) and place the scene centre. ``progress``: called once per view."""
-    config = config or MvsConfig()
-    images = np.asarray(images)
+def _stereo_depths(images, Ks, w2c, points, config: MvsConfig, progress) -> np.ndarray:
+    """:func:`stereo_depths` at the images' own size."""
     V = len(images)
-    if V < 2:
-        raise ValueError("stereo depth needs at least two views")
     grey = np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in images]).astype(np.float32) / 255.0
     raw = np.zeros(grey.shape, np.float32)
     points = np.asarray(points, np.float64).reshape(-1, 3)
@@ -214,7 +198,7 @@ def stereo_depths(
     return consistent_depths(raw, Ks, w2c, nbrs, config)
 
 
-def stereo_depths_at_size(
+def stereo_depths(
     images: np.ndarray,
     Ks: np.ndarray,
     w2c: np.ndarray,
@@ -222,18 +206,25 @@ def stereo_depths_at_size(
     config: MvsConfig | None = None,
     progress=None,
 ) -> np.ndarray:
-    """:func:`stereo_depths` of photos reduced (area average) to ``config.max_size`` on their longest side,
-    returned at the photos' size ``[V,H,W]`` (each depth copied to the pixels it covers)."""
+    """Depth maps ``[V,H,W]`` float32 (0 = no depth) of calibrated views, at the images' size.
+
+    ``images [V,H,W,3]`` uint8 RGB; ``Ks [V,3,3]``; ``w2c [V,4,4]`` OpenCV world-to-camera; ``points [P,3]``:
+    sparse scene points (structure from motion) that bound each view's depth range (its 1st-99th
+    percentile, times ``config.range_margin``) and place the scene centre. Images larger than
+    ``config.max_size`` on their longest side are reduced (area average) for the sweep and each depth is
+    copied to the pixels it covers. ``progress``: called once per view."""
     config = config or MvsConfig()
     images = np.asarray(images)
+    if len(images) < 2:
+        raise ValueError(f"stereo depth needs at least two views of a state, got {len(images)}")
     V, H, W = images.shape[:3]
     s = min(1.0, config.max_size / max(H, W))
     if s >= 1.0:
-        return stereo_depths(images, Ks, w2c, points, config, progress)
+        return _stereo_depths(images, Ks, w2c, points, config, progress)
     w, h = max(1, round(W * s)), max(1, round(H * s))
     small = np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in images])
     Ks_small = np.array(Ks, np.float64)
     Ks_small[:, 0] *= w / W
     Ks_small[:, 1] *= h / H
-    d = stereo_depths(small, Ks_small, w2c, points, config, progress)
+    d = _stereo_depths(small, Ks_small, w2c, points, config, progress)
     return np.stack([cv2.resize(x, (W, H), interpolation=cv2.INTER_NEAREST) for x in d])

@@ -52,7 +52,7 @@ from train_world.capture.marker import (
     marker_scale,
 )
 from train_world.capture.motions import ObjectMotion, estimate_object_motion
-from train_world.capture.mvs import stereo_depths_at_size
+from train_world.capture.mvs import stereo_depths
 from train_world.capture.photos import (
     PHOTO_STATES,
     PhotoCapture,
@@ -293,7 +293,7 @@ def _write_depths(stage: Path, sfm: SfmResult, unds: dict, frame, progress: bool
                 [np.linalg.inv(frame.camera_to_world(sfm.world_to_camera[f"{s}/{k}"])) for k in stems]
             )
             Ks = np.repeat(unds[s].K[None], len(stems), axis=0)
-            depth = stereo_depths_at_size(np.stack(images), Ks, w2c, points, progress=lambda: bar.update(1))
+            depth = stereo_depths(np.stack(images), Ks, w2c, points, progress=lambda: bar.update(1))
             units = np.rint(depth.astype(np.float64) / DEPTH_SCALE)
             units = np.where(units <= np.iinfo(np.uint16).max, units, 0).astype(np.uint16)
             for stem, d in zip(stems, units, strict=True):

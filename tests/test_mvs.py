@@ -85,7 +85,7 @@ def test_large_photos_are_reduced_and_depth_comes_back_full_size():
 
 def test_neighbours_within_the_angle_range():
     _, _, w2c, _, _ = _scene(n=6)
-    cfg = MvsConfig(neighbours=3, best_of=1, min_angle_deg=5.0, max_angle_deg=20.0)
+    cfg = MvsConfig(neighbours=3, best_of=1, min_angle_deg=5.0, max_angle_deg=20.0, preferred_angle_deg=8.0)
     nb = select_neighbours(w2c, np.zeros(3), cfg)
     c = np.array([-w[:3, :3].T @ w[:3, 3] for w in w2c])
     d = -c / np.linalg.norm(c, axis=1, keepdims=True)
@@ -95,7 +95,7 @@ def test_neighbours_within_the_angle_range():
         ok = [j for j in range(6) if 5.0 <= ang[i, j] <= 20.0]
         assert set(n) <= set(ok)
         assert len(n) == min(3, len(ok))
-        assert list(n) == sorted(n, key=lambda j: abs(ang[i, j] - 15.0))
+        assert list(n) == sorted(n, key=lambda j: abs(ang[i, j] - cfg.preferred_angle_deg))
 
 
 def test_too_few_points_give_no_depth():

@@ -40,6 +40,7 @@ class MvsConfig:
     window: int = 5  # NCC patch side (pixels)
     min_angle_deg: float = 3.0  # neighbours see the scene centre from at least this angle apart ...
     max_angle_deg: float = 45.0  # ... and at most this
+    preferred_angle_deg: float = 15.0  # the neighbours nearest this angle first
     max_cost: float = 0.5  # 1 - NCC above this: no depth
     min_std: float = 2.0 / 255.0  # grey-value standard deviation of a patch below this: flat, no depth
     min_consistent: int = 2  # neighbours whose depth maps must agree
@@ -59,7 +60,7 @@ class MvsConfig:
 
 def select_neighbours(w2c: np.ndarray, centre: np.ndarray, config: MvsConfig) -> list[np.ndarray]:
     """Per view, the indices of up to ``config.neighbours`` other views whose directions to ``centre [3]``
-    differ by an angle in ``[min_angle_deg, max_angle_deg]``, the ones nearest 15 degrees first."""
+    differ by an angle in ``[min_angle_deg, max_angle_deg]``, the ones nearest ``preferred_angle_deg`` first."""
     c = np.array([-w[:3, :3].T @ w[:3, 3] for w in w2c])
     d = np.asarray(centre, np.float64)[None] - c
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -67,7 +68,7 @@ def select_neighbours(w2c: np.ndarray, centre: np.ndarray, config: MvsConfig) ->
     out = []
     for i in range(len(w2c)):
         ok = np.flatnonzero((ang[i] >= config.min_angle_deg) & (ang[i] <= config.max_angle_deg))
-        ok = ok[np.argsort(np.abs(ang[i, ok] - 15.0), kind="stable")]
+        ok = ok[np.argsort(np.abs(ang[i, ok] - config.preferred_angle_deg), kind="stable")]
         out.append(ok[: config.neighbours])
     return out
 

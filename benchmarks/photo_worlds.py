@@ -127,9 +127,11 @@ def _step(
 
 
 def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], marker: float | None,
-          eval_args: list[str] | None = None) -> dict:  # fmt: skip
+          eval_args: list[str] | None = None, capture_args: list[str] | None = None,
+          photo_train_args: list[str] | None = None) -> dict:  # fmt: skip
     """Every step for one scene under ``work/name``; returns the scene's figures. Steps whose outputs an
-    earlier run left in ``work/name`` (with their times in ``steps.json``) are not run again."""
+    earlier run left in ``work/name`` (with their times in ``steps.json``) are not run again.
+    ``capture_args`` go to ``dsg-capture``, ``photo_train_args`` to the photo world's ``dsg-train`` only."""
     d = work / name
     d.mkdir(parents=True, exist_ok=True)
     photos, est, truth = d / "photos", d / "est", d / "photos" / "ground_truth"
@@ -138,11 +140,12 @@ def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], m
     _step(d, "synth", [*SYNTH, "--scene", name, "--as-photos", "--out", str(photos), "--overwrite", "--quiet",
                        *mk, *synth_args], truth / "scene.json", ran)  # fmt: skip
     cap_s, _ = _step(d, "capture", [*CAPTURE, str(photos), "--out", str(est), "--overwrite",
-                                    *(["--marker-size", str(marker)] if marker else [])],
+                                    *(["--marker-size", str(marker)] if marker else []), *(capture_args or [])],
                      est / "scene.json", ran, ("synth",))  # fmt: skip
     # every photo trains, as every true view trains the reference: the test states are the evaluation
     train_s, rss = _step(d, "train", [*TRAIN, str(est), "--out", str(d / "photo.dsgworld"), "--quiet",
-                                      "--holdout-every", "0", *train_args],
+                                      "--holdout-every", "0", *train_args,
+                                      *(photo_train_args or [])],
                          d / "photo.dsgworld", ran, ("synth", "capture"))  # fmt: skip
     ref_s, ref_rss = _step(d, "train_reference", [*TRAIN, str(truth), "--out", str(d / "reference.dsgworld"),
                                                   "--quiet", *train_args],
@@ -183,16 +186,20 @@ def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], m
 
 
 def run(out: Path, scenes: list[str], work: Path | None, synth_args: list[str], train_args: list[str],
-        marker: float | None, eval_args: list[str] | None = None) -> dict[str, Any]:  # fmt: skip
+        marker: float | None, eval_args: list[str] | None = None, capture_args: list[str] | None = None,
+        photo_train_args: list[str] | None = None) -> dict[str, Any]:  # fmt: skip
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(work) if work is not None else Path(tmp)
         for s in scenes:
-            results[s] = scene(s, root, synth_args, train_args, marker, eval_args)
+            results[s] = scene(
+                s, root, synth_args, train_args, marker, eval_args, capture_args, photo_train_args
+            )
     gaps = [r["gap_db"] for r in results.values()]
     result = {
         "config": {"scenes": scenes, "synth_args": synth_args, "train_args": train_args, "marker_m": marker,
-                   "eval_args": list(eval_args or []), "cpus": os.cpu_count()},
+                   "eval_args": list(eval_args or []), "capture_args": list(capture_args or []),
+                   "photo_train_args": list(photo_train_args or []), "cpus": os.cpu_count()},
         "scenes": results,
         "summary": {
             "mean_gap_db": round(sum(gaps) / len(gaps), 3),
@@ -242,6 +249,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--preset", default=None, help="dsg-train preset (default: dsg-train's)")
     p.add_argument("--iterations", type=int, help="dsg-train steps (default: the preset's)")
+    p.add_argument("--stereo", action="store_true", help="dsg-capture --stereo: depth maps from the photos")
+    p.add_argument(
+        "--depth-weight",
+        type=float,
+        metavar="W",
+        help="dsg-train --depth-weight W for the photo world (with --stereo: its stereo depth)",
+    )
     args = p.parse_args(argv)
     known = list(default_scene_names())
     scenes = known if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
@@ -255,7 +269,9 @@ def main(argv: list[str] | None = None) -> int:
     train += ["--iterations", str(args.iterations)] if args.iterations else []
     out = args.out or default_out("photo_worlds")
     ev = ["--align-views", str(args.align_views)] if args.align_views else []
-    r = run(out, scenes, args.work, synth, train, args.marker or None, ev)
+    cap = ["--stereo"] if args.stereo else []
+    photo_train = ["--depth-weight", str(args.depth_weight)] if args.depth_weight is not None else []
+    r = run(out, scenes, args.work, synth, train, args.marker or None, ev, cap, photo_train)
     print(json.dumps(r["summary"]))
     return 0
 

@@ -11,7 +11,13 @@ from pathlib import Path
 
 from train_world.suite import runner as _lib
 from train_world.suite.runner import METHODS, _scene_list, _write_tables, merge_tables, run_suite
-from train_world.suite.seeds import run_seeds
+from train_world.suite.seeds import (
+    merge_by_seed,
+    run_seeds,
+    seed_folder,
+    summarise_seeds,
+    write_seed_tables,
+)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -27,7 +33,8 @@ def _parser() -> argparse.ArgumentParser:
         type=Path,
         nargs="+",
         metavar="TABLE_JSON",
-        help="train nothing: join these runs' table.json files into OUT/table.md and OUT/table.json",
+        help="train nothing: join these runs' table.json files into OUT/table.md and OUT/table.json; runs of "
+        "several seeds into OUT/seed-<s>/ per seed and the summary over seeds (as --seeds writes)",
     )
     p.add_argument("--scenes", default="all", help="comma-separated scene names or 'all' (default)")
     p.add_argument("--methods", default="a,b,B,BC,BCP", help="subset of a,b,B,BC,BCP (default: all)")
@@ -94,11 +101,22 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         try:
-            r = merge_tables([json.loads(Path(f).read_text()) for f in args.merge], methods)
-        except (OSError, ValueError, KeyError) as e:
+            tables = [json.loads(Path(f).read_text()) for f in args.merge]
+            by_seed = merge_by_seed(tables, methods) if len({t.get("seed") for t in tables}) > 1 else None
+            r = merge_tables(tables, methods) if by_seed is None else None
+        except (OSError, ValueError, KeyError, AttributeError) as e:
             print(f"dsg-suite: error: {e}", file=sys.stderr)
             return 2
         args.out.mkdir(parents=True, exist_ok=True)
+        if by_seed is not None:  # runs of several seeds: one table per seed, then the summary over seeds
+            for seed, t in by_seed.items():
+                seed_folder(args.out, seed).mkdir(exist_ok=True)
+                _write_tables(seed_folder(args.out, seed), t)
+            summary = summarise_seeds(by_seed)
+            write_seed_tables(args.out, summary, {m: METHODS[m][0] for m in METHODS})
+            print(json.dumps({"out": str(args.out), "over_scene_seeds": {
+                m: {k: v["mean"] for k, v in x["all"].items()} for m, x in summary["methods"].items()}}))  # fmt: skip
+            return 0
         _write_tables(args.out, r)
         print(json.dumps({"out": str(args.out), "mean_over_scenes": r["mean_over_scenes"]}))
         return 0

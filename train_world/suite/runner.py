@@ -30,6 +30,7 @@ Examples::
     dsg-suite --out /tmp/s --methods B,BC,BCP --refine-steps 0     # the ablations without refinement
     dsg-suite --out merged --merge run1/table.json run2/table.json   # one table from two partial runs
     dsg-suite --out merged --merge old/table.json new/table.json --methods a,b,BCP
+    dsg-suite --out seeds --merge s0/table.json s1/table.json s2/table.json    # several seeds: seeds.md too
 """
 
 from __future__ import annotations

@@ -261,3 +261,16 @@ def test_two_state_training_holds_out_views_only_when_the_capture_has_no_test_st
     assert held(bare, "--holdout-every", "0") == 0 and held(tiny, "--holdout-every", "4") == 4
     with pytest.raises(ValueError, match="holdout_every"):
         held(tiny, "--holdout-every", "1")
+
+
+def test_dsg_train_adds_the_far_shell_unless_told_not_to(tiny, tmp_path):
+    plain = _dual_cli(tiny, tmp_path / "plain.dsgworld", "--no-shell")
+    shelled = _dual_cli(tiny, tmp_path / "shelled.dsgworld")
+    assert "background_shell" not in plain.metadata
+    n = shelled.metadata["background_shell"]["gaussians"]
+    nb = plain.background.num
+    assert shelled.background.num == nb + n
+    assert np.array_equal(shelled.background.means[:nb], plain.background.means)  # the trained part as it was
+    assert shelled.metadata["num_gaussians"] == plain.metadata["num_gaussians"] + n
+    for oid, o in plain.objects.items():
+        assert np.array_equal(o.gaussians.means, shelled.objects[oid].gaussians.means)

@@ -36,6 +36,7 @@ import sys
 import time
 from pathlib import Path
 
+from train_world.complete.shell import with_background_shell
 from train_world.dual_state.config import DualConfig
 from train_world.dual_state.views import (
     HOLDOUT_WITHOUT_TEST_STATES,
@@ -82,6 +83,15 @@ def add_depth_argument(p: argparse.ArgumentParser) -> None:
         metavar="W",
         help="weight of an expected-depth term against the capture's depth, where it has depth (relative L1; "
         "not part of DSG-World; default: the preset's, 0 = off)",
+    )
+
+
+def add_shell_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--no-shell",
+        action="store_true",
+        help="do not add the far shell that fills directions no training view saw (train_world.complete.shell; "
+        "added by default, except to worlds of NeRF-Blender captures, whose background is a plain colour)",
     )
 
 
@@ -133,6 +143,7 @@ def single_state_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_depth_argument(p)
+    add_shell_argument(p)
     return p
 
 
@@ -176,6 +187,7 @@ def two_state_parser() -> argparse.ArgumentParser:
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
     add_mip_argument(p)
     add_depth_argument(p)
+    add_shell_argument(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--joint-from",
@@ -351,7 +363,12 @@ def main_single_state(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         trainer.train(progress=not args.quiet)
-        trainer.write_world(args.out)
+        world = trainer.world()
+        if not args.no_shell and data.source.get("kind") != "blender":
+            world = with_background_shell(world)
+        from dsg_gym.world import write_world
+
+        write_world(args.out, world)
     except TrainingDiverged as e:
         print(f"dsg-train: error: training diverged: {e}", file=sys.stderr)
         return 3
@@ -424,6 +441,8 @@ def main_two_state(argv: list[str] | None = None) -> int:
                 print(f"dsg-train: {line}", file=sys.stderr)
         views = {d.state: StateViews(d.images, d.viewmats, d.Ks) for d in (trainer.data1, trainer.data2)}
         world, refined = refine_world(world, views, refine, progress=not args.quiet)
+        if not args.no_shell:
+            world = with_background_shell(world)
         from dsg_gym.world import write_world
 
         write_world(args.out, world)

@@ -145,12 +145,12 @@ def write_seed_tables(out: str | Path, summary: Mapping[str, Any], labels: Mappi
         lines.append(f"| {labels.get(m, m)} | " + " | ".join(cells) + " |")
     costs = [(m, r["train"]) for m, r in summary["methods"].items() if r.get("train")]
     if costs:
-        lines += ["", "| method | dsg-train wall, mean (min) | slowest scene-seed | largest peak RSS |",
+        lines += ["", "| method | mean dsg-train wall | slowest scene-seed | largest peak RSS |",
                   "| --- | --- | --- | --- |"]  # fmt: skip
         for m, c in costs:
             w, sl, rss = c["wall_seconds"], c["slowest"], c["peak_rss_mb_max"]
             lines.append(
-                f"| {labels.get(m, m)} | {w['mean'] / 60:.1f} | {sl['wall_seconds'] / 60:.1f} min "
+                f"| {labels.get(m, m)} | {w['mean'] / 60:.1f} min | {sl['wall_seconds'] / 60:.1f} min "
                 f"({sl['scene']}, seed {sl['seed']}) | "
                 + ("-" if rss is None else f"{rss / 1024:.2f} GiB")
                 + " |"

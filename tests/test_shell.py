@@ -1,0 +1,153 @@
+"""The far shell: flat background Gaussians for the directions no training view saw."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dsg_gym.cameras import Cameras, look_at
+from dsg_gym.gaussians import GaussianSet, rgb_to_sh0
+from dsg_gym.poses import quat_to_rotmat
+from dsg_gym.splat import rasterize
+from dsg_gym.world import World
+from train_world.complete.shell import (
+    ShellConfig,
+    background_shell,
+    fibonacci_directions,
+    with_background_shell,
+)
+
+WALL_RGB = {"+x": (0.9, 0.2, 0.2), "-x": (0.2, 0.9, 0.2), "+y": (0.2, 0.2, 0.9), "-y": (0.9, 0.9, 0.2)}
+FLOOR_RGB = (0.5, 0.5, 0.5)
+
+
+def _room(n_side: int = 40) -> GaussianSet:
+    """A 2 x 2 m room 1.2 m high without a ceiling: four walls of one colour each and a grey floor."""
+    s = np.linspace(-1.0, 1.0, n_side)
+    h = np.linspace(0.0, 1.2, n_side // 2)
+    pts, rgb = [], []
+    for name, col in WALL_RGB.items():
+        a, b = np.meshgrid(s, h)
+        fixed = np.full(a.size, 1.0 if name[0] == "+" else -1.0)
+        p = (
+            np.stack([fixed, a.ravel(), b.ravel()], 1)
+            if name[1] == "x"
+            else np.stack([a.ravel(), fixed, b.ravel()], 1)
+        )
+        pts.append(p)
+        rgb.append(np.tile(col, (len(p), 1)))
+    a, b = np.meshgrid(s, s)
+    pts.append(np.stack([a.ravel(), b.ravel(), np.zeros(a.size)], 1))
+    rgb.append(np.tile(FLOOR_RGB, (a.size, 1)))
+    p, c = np.concatenate(pts), np.concatenate(rgb)
+    n = len(p)
+    return GaussianSet(
+        means=p,
+        quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+        scales=np.full((n, 3), 0.05),
+        opacities=np.full(n, 0.99),
+        sh=rgb_to_sh0(c)[:, None, :],
+        features=np.tile([2.0, -1.0], (n, 1)),
+    )
+
+
+def _cameras() -> Cameras:
+    """Eight views from inside the room, level and looking at the lower walls: none sees above them."""
+    f, size = 40.0, 32
+    eyes = [(0.3 * np.cos(a), 0.3 * np.sin(a), 0.4) for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+    vms = np.stack([look_at(e, (3 * e[0], 3 * e[1], 0.3)) for e in eyes])
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    return Cameras(vms, np.repeat(K[None], len(eyes), 0), size, size)
+
+
+def _projects_inside(points, cams: Cameras) -> np.ndarray:
+    inside = np.zeros(len(points), bool)
+    for vm, K in zip(cams.viewmats, cams.Ks):
+        p = points @ vm[:3, :3].T + vm[:3, 3]
+        uvw = p @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = uvw[:, 0] / p[:, 2], uvw[:, 1] / p[:, 2]
+        inside |= (p[:, 2] > 0) & (u >= 0) & (u <= cams.width) & (v >= 0) & (v <= cams.height)
+    return inside
+
+
+def test_fibonacci_directions_are_unit_and_even():
+    d = fibonacci_directions(2000)
+    assert d.shape == (2000, 3) and np.allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert np.abs(d.mean(axis=0)).max() < 0.01  # no side favoured
+    assert (d[:, 2] > 0).mean() == pytest.approx(0.5, abs=0.01)
+
+
+def test_shell_lies_behind_the_room_outside_every_view_coloured_by_the_wall_it_continues():
+    bg, cams = _room(), _cameras()
+    shell = background_shell(bg, [cams])
+    cfg = ShellConfig()
+    assert 0 < shell.num < cfg.directions
+    assert not _projects_inside(shell.means.astype(np.float64), cams).any()  # never covers what a view saw
+    centre = np.median(bg.means, axis=0)
+    r = np.linalg.norm(shell.means - centre, axis=1)
+    assert np.allclose(r, r[0], rtol=1e-5) and r[0] > np.linalg.norm(bg.means - centre, axis=1).max()
+    # each shell Gaussian is a thin disc facing the centre
+    normals = quat_to_rotmat(shell.quats.astype(np.float64))[:, :, 2]
+    radial = (shell.means - centre) / r[:, None]
+    assert np.allclose(np.abs(np.sum(normals * radial, axis=1)), 1.0, atol=1e-5)
+    assert np.all(shell.scales[:, 2] < 0.1 * shell.scales[:, 0])
+    # directions straight through the middle of a wall take that wall's colour (no views: nothing dropped)
+    whole = background_shell(bg, [])
+    assert whole.num == cfg.directions
+    radial = (whole.means - centre) / np.linalg.norm(whole.means - centre, axis=1, keepdims=True)
+    for name, col in WALL_RGB.items():
+        axis = {"x": 0, "y": 1}[name[1]]
+        sign = 1.0 if name[0] == "+" else -1.0
+        toward = (sign * radial[:, axis] > 0.95) & (radial[:, 2] > 0.1)  # above the corner with the floor
+        assert toward.any(), name
+        assert np.allclose(whole.sh[toward, 0], rgb_to_sh0(np.array(col)), atol=1e-5), name
+    assert np.all(shell.labels == 0) and np.allclose(shell.features, [2.0, -1.0])
+    assert np.all(shell.sh[:, 1:] == 0)
+    # deterministic
+    again = background_shell(bg, [cams])
+    assert np.array_equal(again.means, shell.means) and np.array_equal(again.sh, shell.sh)
+
+
+def _render(g: GaussianSet, vm: np.ndarray, K: np.ndarray, size: int) -> np.ndarray:
+    t = lambda a: torch.as_tensor(np.asarray(a, np.float32))  # noqa: E731
+    img, _, _ = rasterize(
+        t(g.means), t(g.quats), t(g.scales), t(g.opacities), t(g.sh), t(vm[None]), t(K[None]), size, size,
+        sh_degree=0, backgrounds=torch.zeros(1, 3),
+    )  # fmt: skip
+    return img[0].numpy()
+
+
+def test_a_view_above_the_walls_sees_the_shell_and_the_training_views_do_not():
+    bg, cams = _room(), _cameras()
+    world = World(bg, {}, {"state1": np.zeros((0, 4, 4))}, {"state1": cams}, np.zeros((1, 2)), np.zeros(1),
+                  metadata={"num_gaussians": bg.num})  # fmt: skip
+    shelled = with_background_shell(world)
+    n = shelled.metadata["background_shell"]["gaussians"]
+    assert n > 0 and shelled.background.num == bg.num + n and shelled.metadata["num_gaussians"] == bg.num + n
+    assert np.array_equal(shelled.background.means[: bg.num], bg.means)  # the room is untouched
+    assert with_background_shell(shelled) is shelled  # once only
+    # a camera tilted up past the top of the +x wall: black without the shell, the wall's red with it
+    K = np.array([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1.0]])
+    up = look_at((0.0, 0.0, 0.6), (1.0, 0.0, 1.9))
+    top = slice(0, 4)
+    assert _render(bg, up, K, 16)[top].max() < 0.05
+    seen_above = _render(shelled.background, up, K, 16)[top].reshape(-1, 3).mean(axis=0)
+    nearest = min(WALL_RGB, key=lambda k: np.linalg.norm(seen_above - np.array(WALL_RGB[k])))
+    assert nearest == "+x" and seen_above.sum() > 1.0, seen_above  # mostly the red wall's colour
+    # the training views render nearly as before: only discs just outside a view show at its edge, through
+    # the gaps of this sparse room; dropping every disc that reaches in leaves them exactly as before
+    strict = with_background_shell(world, ShellConfig(cull_sigmas=3.0))
+    for vm, Kc in zip(cams.viewmats, cams.Ks):
+        a, b = _render(bg, vm, Kc, cams.width), _render(shelled.background, vm, Kc, cams.width)
+        assert np.abs(a - b).mean() < 0.01 and (np.abs(a - b).max(axis=2) < 1e-3).mean() > 0.8
+        c = _render(strict.background, vm, Kc, cams.width)
+        assert np.abs(a - c).max() < 1e-4
+
+
+def test_too_little_background_gives_no_shell():
+    bg = _room().subset(np.arange(5))
+    assert background_shell(bg, [_cameras()]).num == 0
+    with pytest.raises(ValueError, match="far_fraction"):
+        ShellConfig(far_fraction=0.0)

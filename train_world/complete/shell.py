@@ -1,0 +1,154 @@
+"""A far shell behind the background for the directions no training view saw.
+
+A splat world knows only what its training views saw; a camera that looks past them (above the captured part
+of a wall, say) sees through to the render's background colour, a hole that no surface in the room has. The
+shell fills those directions with what lies beside them: flat Gaussians on a sphere around the background,
+each facing the sphere's centre and coloured like the background Gaussians farthest out in its direction.
+
+- Centre and radius: the median of the background Gaussians' centres (those with opacity >=
+  ``min_opacity``), and ``margin`` times the ``radius_percentile`` of their distances from it, so the shell
+  lies behind nearly all of the background.
+- Colour and identity features: for each of ``directions`` evenly spread directions (a Fibonacci sphere), the
+  ``neighbours`` background Gaussians nearest in direction; the mean DC colour and mean features of those
+  among them at least ``far_fraction`` of the farthest one's distance out (the surface at the back, not the
+  table in front). Higher SH bands are zero.
+- Only the unseen part is kept: a shell Gaussian whose centre projects into the image of any of the world's
+  cameras is dropped, so the shell stays out of what those views saw. Near the edge of a view, the disc of a
+  shell Gaussian just outside it can still show where the surface in front is not quite opaque;
+  ``cull_sigmas`` > 0 drops those too, and with them the shell just beyond the views' edges, which is where
+  other views mostly look past them.
+
+Deterministic; float64 inside. Conventions: quaternions wxyz, cameras OpenCV world-to-camera (as the world
+file stores them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from dsg_gym.cameras import Cameras
+from dsg_gym.gaussians import GaussianSet
+from dsg_gym.world import World
+
+__all__ = ["ShellConfig", "background_shell", "fibonacci_directions", "with_background_shell"]
+
+
+@dataclass(frozen=True)
+class ShellConfig:
+    """Thresholds of :func:`background_shell`."""
+
+    directions: int = 4000  # shell Gaussians before the seen ones are dropped
+    neighbours: int = 16  # background Gaussians that colour one shell Gaussian
+    far_fraction: float = 0.9  # of those, the ones at least this share of the farthest one's distance
+    radius_percentile: float = 99.5  # the shell radius: this percentile of the background's distances ...
+    margin: float = 1.1  # ... times this
+    min_opacity: float = 0.3  # background Gaussians fainter than this are ignored
+    spread: float = 0.7  # a shell Gaussian's extent, in units of the spacing between directions
+    thickness: float = 0.05  # its extent along its normal, relative to its extent across
+    opacity: float = 0.99
+    cull_sigmas: float = 0.0  # dropped when its centre plus this many of its extents projects into a view
+
+    def __post_init__(self) -> None:
+        if self.directions < 1 or self.neighbours < 1:
+            raise ValueError("ShellConfig: directions and neighbours must be >= 1")
+        if not (0.0 < self.far_fraction <= 1.0 and 0.0 < self.radius_percentile <= 100.0):
+            raise ValueError("ShellConfig: far_fraction must be in (0, 1] and radius_percentile in (0, 100]")
+        if not (self.margin >= 1.0 and self.spread > 0 and self.thickness > 0 and 0 < self.opacity <= 1):
+            raise ValueError("ShellConfig: need margin >= 1, spread > 0, thickness > 0 and opacity in (0, 1]")
+        if self.cull_sigmas < 0:
+            raise ValueError("ShellConfig: cull_sigmas must be >= 0")
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """``n`` unit vectors ``[n, 3]`` spread evenly over the sphere (a Fibonacci lattice)."""
+    i = np.arange(n, dtype=np.float64) + 0.5
+    polar = np.arccos(1.0 - 2.0 * i / n)
+    azimuth = np.pi * (1.0 + np.sqrt(5.0)) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+
+
+def _facing(normals: np.ndarray) -> np.ndarray:
+    """Unit quaternions (wxyz) turning +z onto each unit vector of ``normals [N, 3]``."""
+    q = np.stack([1.0 + normals[:, 2], -normals[:, 1], normals[:, 0], np.zeros(len(normals))], axis=1)
+    q[q[:, 0] < 1e-9] = (0.0, 1.0, 0.0, 0.0)  # -z: half a turn about x
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _seen(points: np.ndarray, extent: float, cameras: Iterable[Cameras]) -> np.ndarray:
+    """Bool ``[N]``: a disc of radius ``extent`` around the point reaches into some camera's image (the
+    point's projection within the disc's projected radius of the image; behind-the-camera points count where
+    the disc reaches in front)."""
+    seen = np.zeros(len(points), bool)
+    for cam in cameras:
+        for vm, K in zip(cam.viewmats, cam.Ks):
+            p = points @ vm[:3, :3].T + vm[:3, 3]
+            z = p[:, 2]
+            front = z > extent
+            zf = np.where(front, z, 1.0)
+            u = (K[0, 0] * p[:, 0] + K[0, 1] * p[:, 1]) / zf + K[0, 2]
+            v = K[1, 1] * p[:, 1] / zf + K[1, 2]
+            m = max(K[0, 0], K[1, 1]) * extent / np.where(front, z - extent, 1.0)
+            near = ~front & (z > -extent)  # the disc straddles the camera plane: call it seen
+            seen |= near | (front & (u >= -m) & (u <= cam.width + m) & (v >= -m) & (v <= cam.height + m))
+    return seen
+
+
+def background_shell(
+    background: GaussianSet, cameras: Iterable[Cameras], config: ShellConfig | None = None
+) -> GaussianSet:
+    """The shell Gaussians (module docstring) for ``background`` seen by ``cameras``, labelled background (0)
+    with ``background``'s SH width and features. Empty when the background has fewer Gaussians than
+    ``config.neighbours`` at ``config.min_opacity``."""
+    c = config or ShellConfig()
+    keep = np.flatnonzero(background.opacities >= c.min_opacity)
+    F, k_sh = background.num_features, background.sh.shape[1]
+    if len(keep) < c.neighbours:
+        return GaussianSet.empty(background.sh_degree, F)
+    means = background.means[keep].astype(np.float64)
+    centre = np.median(means, axis=0)
+    offset = means - centre
+    dist = np.linalg.norm(offset, axis=1)
+    unit = offset / np.maximum(dist, 1e-12)[:, None]
+    dirs = fibonacci_directions(c.directions)
+    _, idx = cKDTree(unit).query(dirs, k=c.neighbours)
+    idx = idx.reshape(len(dirs), c.neighbours)
+    d = dist[idx]
+    w = (d >= c.far_fraction * d.max(axis=1, keepdims=True)).astype(np.float64)
+    w /= w.sum(axis=1, keepdims=True)
+    colour = np.einsum("nk,nkc->nc", w, background.sh[keep][idx, 0].astype(np.float64))
+    features = np.einsum("nk,nkf->nf", w, background.features[keep][idx].astype(np.float64))
+    radius = c.margin * float(np.percentile(dist, c.radius_percentile))
+    centres = centre + radius * dirs
+    across = c.spread * radius * np.sqrt(4.0 * np.pi / c.directions)
+    sh = np.zeros((len(dirs), k_sh, 3))
+    sh[:, 0] = colour
+    unseen = ~_seen(centres, c.cull_sigmas * across, cameras)
+    shell = GaussianSet(
+        means=centres,
+        quats=_facing(dirs),
+        scales=np.tile([across, across, c.thickness * across], (len(dirs), 1)),
+        opacities=np.full(len(dirs), c.opacity),
+        sh=sh,
+        features=features.reshape(len(dirs), F),
+        labels=np.zeros(len(dirs), np.int32),
+    )
+    return shell.subset(unseen)
+
+
+def with_background_shell(world: World, config: ShellConfig | None = None) -> World:
+    """``world`` with :func:`background_shell` (against its own cameras) appended to its background,
+    ``metadata["background_shell"]``: ``{"gaussians": n}`` and ``metadata["num_gaussians"]`` (where
+    recorded) counting them. A world that has a shell already is returned as it is."""
+    if "background_shell" in world.metadata:
+        return world
+    shell = background_shell(world.background, world.cameras.values(), config)
+    meta = {**world.metadata, "background_shell": {"gaussians": int(shell.num)}}
+    if "num_gaussians" in meta:
+        meta["num_gaussians"] = int(meta["num_gaussians"]) + int(shell.num)
+    bg = GaussianSet.concat([world.background, shell]) if shell.num else world.background
+    return dataclasses.replace(world, background=bg, metadata=meta)

@@ -151,3 +151,30 @@ def test_too_little_background_gives_no_shell():
     assert background_shell(bg, [_cameras()]).num == 0
     with pytest.raises(ValueError, match="far_fraction"):
         ShellConfig(far_fraction=0.0)
+
+
+def test_cli_adds_the_shell_once(tmp_path, capsys):
+    from dsg_gym.world import load_world, write_world
+    from train_world.cli.shell import main
+
+    bg, cams = _room(), _cameras()
+    world = World(bg, {}, {"state1": np.zeros((0, 4, 4))}, {"state1": cams}, np.zeros((1, 2)), np.zeros(1))
+    write_world(tmp_path / "w.dsgworld", world)
+    assert main([str(tmp_path / "w.dsgworld"), "--out", str(tmp_path / "s.dsgworld")]) == 0
+    s = load_world(tmp_path / "s.dsgworld")
+    assert s.background.num == bg.num + s.metadata["background_shell"]["gaussians"] > bg.num
+    assert main([str(tmp_path / "s.dsgworld"), "--out", str(tmp_path / "t.dsgworld")]) == 2
+    assert "already" in capsys.readouterr().err and not (tmp_path / "t.dsgworld").exists()
+    assert main([str(tmp_path / "missing.dsgworld"), "--out", str(tmp_path / "t.dsgworld")]) == 2
+
+
+def test_without_undoes_with_exactly():
+    from dsg_gym.world import encode_world
+    from train_world.complete.shell import without_background_shell
+
+    world = World(_room(), {}, {"state1": np.zeros((0, 4, 4))}, {"state1": _cameras()}, np.zeros((1, 2)),
+                  np.zeros(1), metadata={"num_gaussians": _room().num})  # fmt: skip
+    shelled = with_background_shell(world)
+    assert shelled.metadata["background_shell"]["gaussians"] > 0
+    assert encode_world(without_background_shell(shelled)) == encode_world(world)
+    assert without_background_shell(world) is world

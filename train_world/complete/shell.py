@@ -35,7 +35,13 @@ from dsg_gym.cameras import Cameras
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.world import World
 
-__all__ = ["ShellConfig", "background_shell", "fibonacci_directions", "with_background_shell"]
+__all__ = [
+    "ShellConfig",
+    "background_shell",
+    "fibonacci_directions",
+    "with_background_shell",
+    "without_background_shell",
+]
 
 
 @dataclass(frozen=True)
@@ -151,4 +157,22 @@ def with_background_shell(world: World, config: ShellConfig | None = None) -> Wo
     if "num_gaussians" in meta:
         meta["num_gaussians"] = int(meta["num_gaussians"]) + int(shell.num)
     bg = GaussianSet.concat([world.background, shell]) if shell.num else world.background
+    return dataclasses.replace(world, background=bg, metadata=meta)
+
+
+def without_background_shell(world: World) -> World:
+    """``world`` as it was before :func:`with_background_shell`: the shell's rows (the last ones of the
+    background) and its metadata removed. A world without a shell is returned as it is."""
+    rec = world.metadata.get("background_shell")
+    if rec is None:
+        return world
+    n = int(rec["gaussians"])
+    if not 0 <= n <= world.background.num:
+        raise ValueError(
+            f"background_shell records {n} Gaussians but the background has {world.background.num}"
+        )
+    meta = {k: v for k, v in world.metadata.items() if k != "background_shell"}
+    if "num_gaussians" in meta:
+        meta["num_gaussians"] = int(meta["num_gaussians"]) - n
+    bg = world.background.subset(slice(0, world.background.num - n))
     return dataclasses.replace(world, background=bg, metadata=meta)

@@ -57,7 +57,7 @@ def _scene(n: int = 6, flat: bool = False, size: int = SIZE):
 
 def test_textured_plane_depth_is_recovered():
     images, Ks, w2c, truth, pts = _scene()
-    cfg = MvsConfig(neighbours=4, best_of=2)
+    cfg = MvsConfig(neighbours=4, best_of=2, min_consistent=2, rel_depth=0.02)
     d = stereo_depths(images, Ks, w2c, pts, cfg)
     assert d.shape == truth.shape and d.dtype == np.float32
     valid = d > 0
@@ -70,13 +70,21 @@ def test_textured_plane_depth_is_recovered():
 
 def test_flat_colour_gets_no_depth():
     images, Ks, w2c, _, pts = _scene(flat=True)
-    d = stereo_depths(images, Ks, w2c, pts, MvsConfig(neighbours=4, best_of=2))
+    d = stereo_depths(
+        images, Ks, w2c, pts, MvsConfig(neighbours=4, best_of=2, min_consistent=2, rel_depth=0.02)
+    )
     assert not (d > 0).any()
 
 
 def test_large_photos_are_reduced_and_depth_comes_back_full_size():
     images, Ks, w2c, truth, pts = _scene(size=96)
-    d = stereo_depths(images, Ks, w2c, pts, MvsConfig(neighbours=4, best_of=2, max_size=48))
+    d = stereo_depths(
+        images,
+        Ks,
+        w2c,
+        pts,
+        MvsConfig(neighbours=4, best_of=2, min_consistent=2, rel_depth=0.02, max_size=48),
+    )
     assert d.shape == truth.shape
     valid = d > 0
     assert valid.mean() > 0.3

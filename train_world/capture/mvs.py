@@ -8,7 +8,8 @@ tolerates occlusion in the others; its depth is the best hypothesis refined by a
 beside it. A depth is kept when it is confident (cost below ``max_cost``, patch not flat) and when at least
 ``min_consistent`` neighbours' own depth maps agree with it: the point reprojected into the neighbour and its
 depth there carried back land within ``reproj_px`` pixels and ``rel_depth`` of the original. Everything else
-is 0 ("no depth"), which is what textureless walls and occluded borders get.
+is 0 ("no depth"), which is what textureless walls and occluded borders get. A kept depth is the mean of its
+own and the confirming neighbours' depths (``average``), which averages out part of the matching noise.
 
 Conventions: ``w2c [V,4,4]`` world-to-camera in OpenCV axes (x right, y down, z forward), ``Ks [V,3,3]`` pinhole
 intrinsics with pixel centres at integer + 0.5, depths along the optical axis in world units. Deterministic.
@@ -43,9 +44,10 @@ class MvsConfig:
     preferred_angle_deg: float = 15.0  # the neighbours nearest this angle first
     max_cost: float = 0.5  # 1 - NCC above this: no depth
     min_std: float = 2.0 / 255.0  # grey-value standard deviation of a patch below this: flat, no depth
-    min_consistent: int = 2  # neighbours whose depth maps must agree
+    min_consistent: int = 3  # neighbours whose depth maps must agree
+    average: bool = True  # a kept depth: the mean of its own and the agreeing neighbours' (carried back)
     reproj_px: float = 1.5
-    rel_depth: float = 0.02
+    rel_depth: float = 0.01
     range_margin: tuple[float, float] = (0.8, 1.25)  # the depth range: SfM depths' 1st-99th percentile, times
     max_size: int = 256  # photos are reduced to this longest side for stereo (cost grows with pixels)
 
@@ -141,7 +143,8 @@ def consistent_depths(
     depths: np.ndarray, Ks: np.ndarray, w2c: np.ndarray, neighbours: list[np.ndarray], config: MvsConfig
 ) -> np.ndarray:
     """``depths [V,H,W]`` (0 = none) with every depth that fewer than ``config.min_consistent`` neighbours
-    confirm set to 0 (module docstring)."""
+    confirm set to 0 (module docstring); with ``config.average``, each kept depth is the mean of its own and
+    the confirming neighbours' depths carried back into its view."""
     V, H, W = depths.shape
     u, v = np.meshgrid(np.arange(W, dtype=np.float64) + 0.5, np.arange(H, dtype=np.float64) + 0.5)
     pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
@@ -151,6 +154,7 @@ def consistent_depths(
         cam = (np.linalg.inv(Ks[i]) @ pix) * z
         world = np.linalg.inv(w2c[i]) @ np.vstack([cam, np.ones(z.size)])
         votes = np.zeros(z.size, np.int64)
+        total = z.copy()
         for n in neighbours[i]:
             pn = w2c[n] @ world
             zn = pn[2]
@@ -168,9 +172,12 @@ def consistent_depths(
                 bp = Ks[i] @ (back[:3] / back[2])
                 err = np.hypot(bp[0] - pix[0], bp[1] - pix[1])
                 rel = np.abs(back[2] - z) / z
-            votes += ok & (err <= config.reproj_px) & (rel <= config.rel_depth)
+            agree = ok & (err <= config.reproj_px) & (rel <= config.rel_depth)
+            votes += agree
+            total += np.where(agree, back[2], 0.0)
         keep = votes >= config.min_consistent
-        out[i] = np.where(keep, z, 0.0).reshape(H, W)
+        kept = total / (1 + votes) if config.average else z
+        out[i] = np.where(keep, kept, 0.0).reshape(H, W)
     return out
 
 

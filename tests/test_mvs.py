@@ -115,3 +115,15 @@ def test_too_few_points_give_no_depth():
     assert d.shape == images.shape[:3] and not (d > 0).any() and len(calls) == 3
     with pytest.raises(ValueError, match="two views"):
         stereo_depths(images[:1], Ks[:1], w2c[:1], pts)
+
+
+def test_averaging_keeps_the_same_pixels_and_cuts_the_noise():
+    images, Ks, w2c, truth, pts = _scene()
+    cfg = MvsConfig(neighbours=4, best_of=2, min_consistent=2, rel_depth=0.02)
+    plain = stereo_depths(images, Ks, w2c, pts, cfg)
+    avg = stereo_depths(images, Ks, w2c, pts, MvsConfig(**{**cfg.__dict__, "average": True}))
+    assert np.array_equal(plain > 0, avg > 0)  # the same depths kept, only their values change
+    valid = plain > 0
+    err = lambda d: np.abs(d[valid] - truth[valid]) / truth[valid]  # noqa: E731
+    assert np.mean(err(avg)) < np.mean(err(plain))
+    assert not np.array_equal(avg, plain)

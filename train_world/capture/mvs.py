@@ -8,8 +8,8 @@ tolerates occlusion in the others; its depth is the best hypothesis refined by a
 beside it. A depth is kept when it is confident (cost below ``max_cost``, patch not flat) and when at least
 ``min_consistent`` neighbours' own depth maps agree with it: the point reprojected into the neighbour and its
 depth there carried back land within ``reproj_px`` pixels and ``rel_depth`` of the original. Everything else
-is 0 ("no depth"), which is what textureless walls and occluded borders get. A kept depth is the mean of its
-own and the confirming neighbours' depths (``average``), which averages out part of the matching noise.
+is 0 ("no depth"), which is what textureless walls and occluded borders get. With ``average``, a kept depth is
+the mean of its own and the confirming neighbours' depths, which averages out part of the matching noise.
 
 Conventions: ``w2c [V,4,4]`` world-to-camera in OpenCV axes (x right, y down, z forward), ``Ks [V,3,3]`` pinhole
 intrinsics with pixel centres at integer + 0.5, depths along the optical axis in world units. Deterministic.
@@ -44,10 +44,10 @@ class MvsConfig:
     preferred_angle_deg: float = 15.0  # the neighbours nearest this angle first
     max_cost: float = 0.5  # 1 - NCC above this: no depth
     min_std: float = 2.0 / 255.0  # grey-value standard deviation of a patch below this: flat, no depth
-    min_consistent: int = 3  # neighbours whose depth maps must agree
-    average: bool = True  # a kept depth: the mean of its own and the agreeing neighbours' (carried back)
+    min_consistent: int = 2  # neighbours whose depth maps must agree
+    average: bool = False  # a kept depth: the mean of its own and the agreeing neighbours' (carried back)
     reproj_px: float = 1.5
-    rel_depth: float = 0.01
+    rel_depth: float = 0.02
     range_margin: tuple[float, float] = (0.8, 1.25)  # the depth range: SfM depths' 1st-99th percentile, times
     max_size: int = 256  # photos are reduced to this longest side for stereo (cost grows with pixels)
 

@@ -51,13 +51,14 @@ def score_run(run: Path, methods: list[str], work: Path) -> list[dict[str, Any]]
             plain = without_background_shell(load_world(world_path))
             name = f"{scene}-{m}-{table.get('seed')}"
             write_world(work / f"{name}-without.dsgworld", plain)
-            write_world(work / f"{name}-with.dsgworld", with_background_shell(plain))
+            shelled = with_background_shell(plain)
+            write_world(work / f"{name}-with.dsgworld", shelled)
             cap = run / "data" / scene
             without = evaluate_test_states(work / f"{name}-without.dsgworld", cap, work / f"{name}-without")
             with_ = evaluate_test_states(work / f"{name}-with.dsgworld", cap, work / f"{name}-with")
             rows.append({
                 "run": str(run), "seed": table.get("seed"), "scene": scene, "method": m,
-                "shell_gaussians": load_world(work / f"{name}-with.dsgworld").metadata["background_shell"]["gaussians"],
+                "shell_gaussians": shelled.metadata["background_shell"]["gaussians"],
                 "without": _scores(without), "with": _scores(with_),
             })  # fmt: skip
     return rows

@@ -379,7 +379,7 @@ def main_single_state(argv: list[str] | None = None) -> int:
     summary = {
         "world": str(args.out),
         "iterations": trainer.step,
-        "gaussians": trainer.field.num,
+        "gaussians": int(world.metadata["num_gaussians"]),  # the far shell included, as two states count it
         "train_seconds": round(trainer.elapsed, 1),
         "wall_seconds": round(time.perf_counter() - t0, 1),
         "peak_rss_mb": round(rss_mb, 1),

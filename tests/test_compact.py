@@ -414,3 +414,20 @@ def test_bad_input_gives_clear_errors(tmp_path, capsys):
             CompactConfig(**bad)
     with pytest.raises(ValueError, match="no capture cameras"):
         compact_world(dataclasses.replace(tiny_world(), cameras=MappingProxyType({})))
+
+
+def test_the_far_shell_count_follows_its_kept_gaussians():
+    from train_world.complete.shell import without_background_shell
+
+    w = tiny_world()
+    n = 3 + _shell(0.035, 0.01).num  # the cube and the three odd Gaussians, the background's last rows
+    w = dataclasses.replace(
+        w, metadata=MappingProxyType({**w.metadata, "background_shell": {"gaussians": n}})
+    )
+    out, _ = compact_world(w, CompactConfig(fraction=0.8, **FAST))
+    tail = w.background.means[-n:]
+    in_tail = np.array([(np.abs(tail - p).max(1) < 1e-6).any() for p in out.background.means])
+    kept = out.metadata["background_shell"]["gaussians"]
+    assert 0 < kept < n and kept == in_tail.sum() and in_tail[-kept:].all()
+    plain = without_background_shell(out)
+    assert plain.background.num == out.background.num - kept and "background_shell" not in plain.metadata

@@ -41,8 +41,9 @@ Steps (the per-Gaussian scores come from :mod:`train_world.compact.importance`):
 ``--fraction F`` skips the budget (no checks until the end) and keeps ``F`` of the Gaussians.
 The result keeps everything else (poses, cameras, classifier, identity features, encodings of the kept
 Gaussians); ``metadata.compacted`` records the options and figures, and table bounds derived from the
-geometry are stored so pruning cannot move them. Identity features stay in the file (``dsg-eval`` classifies
-rendered features for its mask IoU); the runtime does not need them (env masks come from object labels), so
+geometry are stored so pruning cannot move them. A far shell's recorded count (``metadata.background_shell``)
+follows its kept Gaussians. Identity features stay in the file (``dsg-eval`` classifies rendered features for
+its mask IoU); the runtime does not need them (env masks come from object labels), so
 ``DSGWorld-v0`` drops them when it loads a world file. Output is written atomically; the report (counts, PSNR,
 times) is printed as JSON and, with ``--report``, written to a file.
 """
@@ -165,6 +166,16 @@ def _table_meta(world: World) -> dict:
     return {"table": {"bounds": [[t.xmin, t.ymin, t.z], [t.xmax, t.ymax, t.z]], "top_z": t.z}}
 
 
+def _shell_meta(world: World, keep: np.ndarray) -> dict:
+    """``{"background_shell": ...}`` counting the far shell's kept rows (the last ones of the background,
+    :mod:`train_world.complete.shell`), so that the shell can still be told apart; else ``{}``."""
+    rec = world.metadata.get("background_shell")
+    if rec is None:
+        return {}
+    n = int(rec["gaussians"])
+    return {"background_shell": {**dict(rec), "gaussians": int(keep[len(keep) - n :].sum()) if n else 0}}
+
+
 def _background_color(world: World) -> tuple[float, float, float]:
     bg = world.metadata.get("background", (0.0, 0.0, 0.0))
     try:
@@ -244,7 +255,7 @@ def compact_world(
         "refits": s.refits,
         "options": dataclasses.asdict(cfg),
     }
-    meta = {"compacted": summary, **_table_meta(world)}
+    meta = {"compacted": summary, **_table_meta(world), **_shell_meta(world, parts[0].keep)}
     if "num_gaussians" in world.metadata:
         meta["num_gaussians"] = total1
     report = {

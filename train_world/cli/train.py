@@ -36,6 +36,13 @@ import sys
 import time
 from pathlib import Path
 
+from train_world.cli.train_options import (
+    add_camera_argument,
+    add_depth_argument,
+    add_mip_argument,
+    add_shell_argument,
+    camera_options,
+)
 from train_world.complete.shell import with_background_shell
 from train_world.dual_state.config import DualConfig
 from train_world.dual_state.views import (
@@ -63,36 +70,6 @@ __all__ = [
 ]
 
 _EXAMPLES = __doc__.split("Examples::", 1)[1]
-
-
-def add_mip_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--mip",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="--mip: all of Mip-Splatting (antialiased rasterizer, 2D Mip filter, 3D smoothing filter 0.2); "
-        "--no-mip: 3DGS's classic rasterizer (default: the preset's; default/paper: antialiased, no 3D filter)",
-    )
-
-
-def add_depth_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--depth-weight",
-        type=float,
-        default=None,
-        metavar="W",
-        help="weight of an expected-depth term against the capture's depth, where it has depth (relative L1; "
-        "not part of DSG-World; default: the preset's, 0 = off)",
-    )
-
-
-def add_shell_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--no-shell",
-        action="store_true",
-        help="do not add the far shell that fills directions no training view saw (train_world.complete.shell; "
-        "added by default, except to worlds of NeRF-Blender captures, whose background is a plain colour)",
-    )
 
 
 def single_state_parser() -> argparse.ArgumentParser:
@@ -144,6 +121,7 @@ def single_state_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_depth_argument(p)
     add_shell_argument(p)
+    add_camera_argument(p)
     return p
 
 
@@ -188,6 +166,7 @@ def two_state_parser() -> argparse.ArgumentParser:
     add_mip_argument(p)
     add_depth_argument(p)
     add_shell_argument(p)
+    add_camera_argument(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--joint-from",
@@ -283,6 +262,7 @@ def two_state_config(args: argparse.Namespace) -> DualConfig:
         if args.holdout_every is None
         else args.holdout_every,
         background=None if args.background is None else tuple(args.background),
+        **camera_options(args, args.capture),
     )
     return DualConfig(
         base=base,
@@ -346,6 +326,7 @@ def main_single_state(argv: list[str] | None = None) -> int:
             single_state=args.single_state,
             holdout_every=args.holdout_every,
             background=None if args.background is None else tuple(args.background),
+            **camera_options(args, args.capture),
         )
         t0 = time.perf_counter()
         data = load_training_data(args.capture, config)
@@ -417,7 +398,8 @@ def main_two_state(argv: list[str] | None = None) -> int:
             f"{trainer.data1.width}x{trainer.data1.height}, {trainer.data1.num_classes - 1} objects, ablation "
             f"{config.ablation}, tau {config.tau} {trainer.data1.units}, preset {config.base.preset.name} "
             f"({config.base.preset.iterations} steps, joint from {trainer.joint_start}), motions "
-            f"{'refined' if config.refine_motions else 'frozen'}",
+            f"{'refined' if config.refine_motions else 'frozen'}, cameras "
+            f"{'refined' if config.base.refine_cameras else 'fixed'}",
             file=sys.stderr,
         )
         if args.stop_at_joint:
@@ -439,7 +421,12 @@ def main_two_state(argv: list[str] | None = None) -> int:
         if config.refine_motions:
             for line in motion_lines(world.metadata["motions"], trainer.data1.units):
                 print(f"dsg-train: {line}", file=sys.stderr)
-        views = {d.state: StateViews(d.images, d.viewmats, d.Ks) for d in (trainer.data1, trainer.data2)}
+        for state, c in (world.metadata.get("camera_refinement") or {}).items():
+            print(f"dsg-train: cameras of {state} refined: median {c['rotation_deg_median']:.3f} deg, "
+                  f"{c['translation_median']:.4g} {trainer.data1.units} (largest {c['rotation_deg_max']:.3f} "
+                  f"deg, {c['translation_max']:.4g})", file=sys.stderr)  # fmt: skip
+        refined_data = (trainer.t1.refined_data(), trainer.t2.refined_data())  # refined cameras, if any
+        views = {d.state: StateViews(d.images, d.viewmats, d.Ks) for d in refined_data}
         world, refined = refine_world(world, views, refine, progress=not args.quiet)
         if not args.no_shell:
             world = with_background_shell(world)

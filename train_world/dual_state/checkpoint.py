@@ -1,6 +1,6 @@
 """Checkpoints of a two-state run (:class:`~train_world.dual_state.trainer.DualTrainer`): both fields with their
 Adam states, densification statistics, random generators and view queues, the shared classifier, the motion
-corrections when they are refined, and the run's bookkeeping, in the single-state checkpoint format
+and camera corrections when they are refined, and the run's bookkeeping, in the single-state checkpoint format
 (:mod:`train_world.single_state.checkpoint`), so that a resumed or branched run continues bit for bit."""
 
 from __future__ import annotations
@@ -40,6 +40,9 @@ def save_dual_checkpoint(tr, path: str | Path | None = None) -> None:
         tensors.update({f"{tag}/strategy/{k}": v for k, v in t.strategy.state_tensors().items()})
         tensors[f"{tag}/rng/torch"] = t.generator.get_state()
         tensors[f"{tag}/queue"] = t.queue
+        if t.cameras is not None:
+            tensors.update({f"{tag}/{k}": v for k, v in t.cameras.state_tensors().items()})
+            tensors.update(optimizer_to_tensors(f"{tag}/adam/cameras", t.camera_optimizer))
     tensors.update({f"classifier/{k}": v.data for k, v in tr.classifier.named_parameters()})
     tensors.update(optimizer_to_tensors("adam/classifier", tr.cls_optimizer))
     if tr.motions is not None:
@@ -104,6 +107,10 @@ def load_dual_checkpoint(tr, path: str | Path | None = None, *, branch: bool = F
         t.generator.set_state(tensors[f"{tag}/rng/torch"].clone())
         t.queue = tensors[f"{tag}/queue"].clone()
         t.rng.bit_generator.state = st
+        t.cameras, t.camera_optimizer = t._camera_corrections()
+        if t.cameras is not None:
+            t.cameras.load_state_tensors({k: tensors[f"{tag}/{k}"] for k in t.cameras.state_tensors()})
+            optimizer_from_tensors(f"{tag}/adam/cameras", t.camera_optimizer, tensors)
     with torch.no_grad():
         for k, v in tr.classifier.named_parameters():
             v.copy_(tensors[f"classifier/{k}"])

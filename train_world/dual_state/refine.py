@@ -229,7 +229,8 @@ def refine_world(
 
 def training_views_of(world: World, capture: str | Path) -> dict[str, StateViews]:
     """The training views of a two-state world's training states, loaded from ``capture`` as ``dsg-train``
-    used them (its held-out views left out, its downscale and background colour)."""
+    used them (its held-out views left out, its downscale and background colour); with the world's own
+    cameras when training refined them (``metadata["camera_refinement"]``)."""
     from train_world.capture.loader import load_capture
 
     meta = world.metadata
@@ -250,7 +251,13 @@ def training_views_of(world: World, capture: str | Path) -> dict[str, StateViews
     for s in states:
         v = cap.states[s]
         keep = torch.tensor([i for i in range(len(v)) if i not in set(held.get(s, ()))], dtype=torch.int64)
-        out[s] = StateViews(
-            v.images[keep].contiguous(), v.viewmats[keep].contiguous(), v.Ks[keep].contiguous()
-        )
+        vm = v.viewmats
+        if meta.get("camera_refinement") and s in world.cameras:
+            stored = torch.from_numpy(np.asarray(world.cameras[s].viewmats, dtype=np.float32))
+            if stored.shape != vm.shape:
+                raise ValueError(
+                    f"{capture}: state {s!r} has {len(vm)} views, the world {len(stored)} cameras"
+                )
+            vm = stored
+        out[s] = StateViews(v.images[keep].contiguous(), vm[keep].contiguous(), v.Ks[keep].contiguous())
     return out

@@ -146,6 +146,13 @@ class DualTrainer:
             out[d.state] = names
         return out
 
+    def camera_summary(self) -> dict[str, Any] | None:
+        """Per training state, how far camera refinement moved its cameras
+        (:meth:`~train_world.single_state.trainer.Trainer.camera_summary`), or None when not refined."""
+        if self.t1.cameras is None:
+            return None
+        return {t.data.state: t.camera_summary() for t in (self.t1, self.t2)}
+
     def motion_summary(self) -> dict:
         """The motions as given and as trained (``metadata["motions"]`` of the world, :func:`.motions_record`)."""
         final = self.T12_initial if self.motions is None else self.motions.T12()
@@ -173,8 +180,9 @@ class DualTrainer:
     def _render_moved(self, t: Trainer, transform, d: TrainData, i: int, deg: int):
         """Field ``t`` moved by ``transform``, seen from view ``i`` of ``d`` (at the cross-state resolution)."""
         v = self.cross[id(d)]
+        owner = self.t1 if d is self.data1 else self.t2  # its camera as refined so far, when refined
         return t.field.render(
-            d.viewmats[i : i + 1],
+            owner.viewmat(i),
             v.Ks[i : i + 1],
             v.width,
             v.height,
@@ -293,7 +301,10 @@ class DualTrainer:
         if not math.isfinite(stats["loss"]):
             raise TrainingDiverged(f"loss became {stats['loss']} at step {self.step + 1}")
         opts = [*t1.optimizers.values(), *t2.optimizers.values(), self.cls_optimizer]
-        for opt in opts + ([self.motion_optimizer] if self.motion_optimizer is not None else []):
+        extra = [
+            o for o in (self.motion_optimizer, t1.camera_optimizer, t2.camera_optimizer) if o is not None
+        ]
+        for opt in opts + extra:
             opt.zero_grad(set_to_none=True)
         loss.backward()
         # a finite loss can still give a non-finite gradient: refuse the step before Adam spreads it
@@ -302,6 +313,8 @@ class DualTrainer:
         ]
         named += list(self.classifier.named_parameters(prefix="classifier"))
         named += self.motions.named_parameters() if self.motions is not None else []
+        named += [(f"{tag}.{k}", v) for tag, t in (("g1", t1), ("g2", t2)) if t.cameras is not None
+                  for k, v in t.cameras.named_parameters()]  # fmt: skip
         check_gradients(named, self.step + 1, self.last_checkpoint_step)
         for t in (t1, t2):
             t.optimizers["means"].param_groups[0]["lr"] = means_lr(self.step, p.iterations, p.lrs, t.extent)
@@ -309,6 +322,8 @@ class DualTrainer:
             opt.step()
         if self.has_masks:
             self.cls_optimizer.step()
+        t1.step_cameras(self.step)
+        t2.step_cameras(self.step)
         if self.motion_optimizer is not None and joint and cfg.use_align:
             for group, lr in zip(self.motion_optimizer.param_groups, self._motion_lrs()[::-1]):
                 group["lr"] = lr  # groups: rotation, translation
@@ -375,8 +390,8 @@ class DualTrainer:
             P2=self.P2,
             T21=self.T21,
             footprints=(self.footprints(self.P1), self.footprints(self.P2)),
-            data1=self.data1,
-            data2=self.data2,
+            data1=self.t1.refined_data(),
+            data2=self.t2.refined_data(),
             background=self.t1.background,
             poses=self.poses,
             classifier_weight=self.classifier.weight.detach().numpy(),
@@ -393,6 +408,7 @@ class DualTrainer:
             elapsed=self.elapsed,
             motions=self.motion_summary(),
             camera_names=self.camera_names(),
+            cameras=self.camera_summary(),
         )
 
     def world(self, extra_metadata: dict[str, Any] | None = None):

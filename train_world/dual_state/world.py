@@ -46,7 +46,9 @@ class MergeInputs:
     single-state config dict); ``motions``: the motions between the two states as given and as trained
     (:func:`.motions.motions_record`, stored as ``metadata["motions"]``); ``camera_names``: per training
     state, the names of its cameras in the stored order (``metadata["camera_names"]``, what ``dsg-eval`` matches
-    a ground-truth capture's cameras by); the rest is bookkeeping copied into the world's metadata."""
+    a ground-truth capture's cameras by); ``cameras``: per training state, how far camera refinement moved its
+    cameras (``metadata["camera_refinement"]``; ``data1``/``data2`` then hold the refined cameras); the rest is
+    bookkeeping copied into the world's metadata."""
 
     fields: tuple[SegmentedField, SegmentedField]
     labels: tuple[torch.Tensor, torch.Tensor]
@@ -72,6 +74,7 @@ class MergeInputs:
     elapsed: float
     motions: dict | None = None
     camera_names: dict | None = None
+    cameras: dict | None = None
 
 
 def _rows(
@@ -210,6 +213,7 @@ def merged_world(run: MergeInputs, extra_metadata: dict[str, Any] | None = None)
         },
         **({"motions": run.motions} if run.motions is not None else {}),
         **({"camera_names": run.camera_names} if run.camera_names else {}),
+        **({"camera_refinement": run.cameras} if run.cameras else {}),
         **(extra_metadata or {}),
     }
     if "name" in d1.source:

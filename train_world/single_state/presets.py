@@ -225,6 +225,11 @@ class TrainConfig:
     has no held-out views of its own configuration, every n-th view (indices 0, n, 2n, ...) is held out for
     evaluation (0: none); ``background``: colour behind the Gaussians (None: white for NeRF-Blender data,
     black otherwise); ``num_features``: identity feature width (16 in Gaussian Grouping).
+
+    ``refine_cameras``: make the training cameras parameters (:mod:`.camera_refine`; for captures whose cameras
+    are estimates). Their Adam runs from the preset's ``densify_from`` step to the end, starting at
+    ``camera_lr_rotation`` (radians per step) and ``camera_lr_translation`` times the scene extent (scene
+    units per step), both decaying exponentially to a tenth.
     """
 
     preset: Preset
@@ -235,8 +240,15 @@ class TrainConfig:
     holdout_every: int = 8
     background: tuple[float, float, float] | None = None
     num_features: int = 16
+    refine_cameras: bool = False
+    camera_lr_rotation: float = 1e-4
+    camera_lr_translation: float = 1e-4
 
     def __post_init__(self) -> None:
+        for name in ("camera_lr_rotation", "camera_lr_translation"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v}")
         if self.downscale < 1:
             raise ValueError(f"downscale must be a positive integer, got {self.downscale}")
         if self.holdout_every < 0 or self.holdout_every == 1:

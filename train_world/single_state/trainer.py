@@ -8,6 +8,7 @@ parameter, 3DGS learning rates, exponentially decaying position rate), then the 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -21,6 +22,7 @@ from tqdm import tqdm
 from dsg_gym.cameras import Cameras
 from dsg_gym.splat.finite import all_finite
 from dsg_gym.world import World, build_world, write_world
+from train_world.single_state.camera_refine import CameraCorrections, camera_lrs
 from train_world.single_state.checkpoint import (
     load_checkpoint,
     optimizer_from_tensors,
@@ -115,9 +117,61 @@ class Trainer:
         self.optimizers = make_optimizers(self.field, self.preset.lrs, self.extent)
         self.cls_optimizer = torch.optim.Adam(self.classifier.parameters(), lr=self.preset.lrs.classifier)
         self.strategy = DensifyStrategy(StrategyConfig.from_preset(self.preset, self.extent), self.field.num)
+        self.cameras, self.camera_optimizer = self._camera_corrections()
         self.history: list[dict[str, float]] = []
         self.elapsed = 0.0
         self.last_checkpoint_step: int | None = None
+
+    # ------------------------------------------------------------------ camera refinement
+    def _camera_corrections(self) -> tuple[CameraCorrections | None, torch.optim.Adam | None]:
+        """Zero corrections of the training cameras and their Adam (``refine_cameras``), else ``(None, None)``."""
+        if not self.config.refine_cameras:
+            return None, None
+        cams = CameraCorrections(self.data.viewmats)
+        return cams, cams.make_optimizer(*self._camera_lrs())
+
+    def _camera_lrs(self, step: int | None = None) -> tuple[float, float]:
+        c = self.config
+        return camera_lrs(
+            self.step if step is None else step, self.preset.densify_from, self.preset.iterations,
+            c.camera_lr_translation * self.extent, c.camera_lr_rotation,
+        )  # fmt: skip
+
+    def cameras_refined_at(self, step: int) -> bool:
+        """Whether step ``step`` renders through (and steps) the camera corrections."""
+        return self.cameras is not None and step >= self.preset.densify_from
+
+    def step_cameras(self, step: int) -> None:
+        """The corrections' Adam step after a backward pass of step ``step`` (no-op when not refining)."""
+        if not self.cameras_refined_at(step):
+            return
+        for group, lr in zip(self.camera_optimizer.param_groups, self._camera_lrs(step)[::-1]):
+            group["lr"] = lr  # groups: rotation, translation
+        self.camera_optimizer.step()
+
+    def viewmat(self, i: int) -> torch.Tensor:
+        """``[1,4,4]`` float32: training view ``i``'s camera as refined so far (no gradient), else as given."""
+        if self.cameras is None or not self.cameras_refined_at(self.step):
+            return self.data.viewmats[i : i + 1]
+        with torch.no_grad():
+            D = self.cameras._corrections(slice(i, i + 1))
+            return (D @ self.cameras.base[i : i + 1]).float()
+
+    def refined_data(self) -> TrainData:
+        """:attr:`data` with the refined training cameras (in ``viewmats`` and among ``all_viewmats``); the
+        data itself when the cameras are not refined."""
+        d = self.data
+        if self.cameras is None:
+            return d
+        vm = self.cameras.viewmats().float()
+        train = [i for i in range(len(d.all_viewmats)) if i not in set(d.heldout)]
+        all_vm = np.array(d.all_viewmats, dtype=np.float32, copy=True)
+        all_vm[train] = vm.numpy()
+        return dataclasses.replace(d, viewmats=vm, all_viewmats=all_vm)
+
+    def camera_summary(self) -> dict[str, Any] | None:
+        """The world's ``metadata["camera_refinement"]`` (:meth:`CameraCorrections.summary`), or None."""
+        return None if self.cameras is None else self.cameras.summary(self.data.units)
 
     # ------------------------------------------------------------------ initialisation
     def _initial_field(self) -> tuple[SegmentedField, Classifier]:
@@ -209,6 +263,7 @@ class Trainer:
             d.Ks[i : i + 1],
             d.width,
             d.height,
+            transform=self.cameras.transform(i) if self.cameras_refined_at(step) else None,
             sh_degree=deg,
             background=self.background,
             with_features=self.has_masks,
@@ -254,10 +309,16 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)
         self.cls_optimizer.zero_grad(set_to_none=True)
+        if self.camera_optimizer is not None:
+            self.camera_optimizer.zero_grad(set_to_none=True)
         loss.backward()
         # a finite loss can still give a NaN/Inf gradient: stop before Adam spreads it into the field
         check_gradients(
-            [*self.field.params().items(), *self.classifier.named_parameters(prefix="classifier")],
+            [
+                *self.field.params().items(),
+                *self.classifier.named_parameters(prefix="classifier"),
+                *(self.cameras.named_parameters() if self.cameras is not None else []),
+            ],
             self.step + 1,
             self.last_checkpoint_step,
         )
@@ -266,6 +327,7 @@ class Trainer:
             opt.step()
         if self.has_masks:
             self.cls_optimizer.step()
+        self.step_cameras(self.step)
         self.step += 1
         self.strategy.after_backward(self.step, self.field, self.optimizers, out.meta, self.generator)
         self.refresh_filter3d(self.step)
@@ -321,6 +383,9 @@ class Trainer:
         tensors.update({f"classifier/{k}": v.data for k, v in self.classifier.named_parameters()})
         tensors.update(optimizer_to_tensors("adam/classifier", self.cls_optimizer))
         tensors.update({f"strategy/{k}": v for k, v in self.strategy.state_tensors().items()})
+        if self.cameras is not None:
+            tensors.update(self.cameras.state_tensors())
+            tensors.update(optimizer_to_tensors("adam/cameras", self.camera_optimizer))
         tensors["rng/torch"] = self.generator.get_state()
         tensors["queue"] = self.queue
         meta = {
@@ -363,6 +428,10 @@ class Trainer:
         self.strategy.load_state_tensors(
             {"grad2d": tensors["strategy/grad2d"], "count": tensors["strategy/count"]}
         )
+        self.cameras, self.camera_optimizer = self._camera_corrections()
+        if self.cameras is not None:
+            self.cameras.load_state_tensors(tensors)
+            optimizer_from_tensors("adam/cameras", self.camera_optimizer, tensors)
         self.generator.set_state(tensors["rng/torch"].clone())
         self.rng.bit_generator.state = meta["numpy_rng"]
         self.queue = tensors["queue"].clone()
@@ -373,7 +442,7 @@ class Trainer:
 
     # ------------------------------------------------------------------ result
     def world(self, extra_metadata: dict[str, Any] | None = None) -> World:
-        d = self.data
+        d = self.refined_data()
         classes = self.field.labels(self.classifier).numpy()
         meta = {
             "format_note": "see dsg_gym.world",
@@ -391,6 +460,7 @@ class Trainer:
             "num_gaussians": self.field.num,
             "rasterize_mode": self.preset.rasterize_mode,
             "eps2d": self.preset.eps2d,
+            **({"camera_refinement": self.camera_summary()} if self.cameras is not None else {}),
             **(extra_metadata or {}),
         }
         if "name" in d.source:

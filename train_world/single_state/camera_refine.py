@@ -1,0 +1,129 @@
+"""Training cameras as parameters: per-view pose corrections for captures whose cameras are estimates.
+
+Structure from motion (``dsg-capture``) gives cameras a few tenths of a degree and a few millimetres off. At
+128 px a 0.2 degree turn moves the image by half a pixel, so the views disagree about where each textured
+point is, and the field blurs what they disagree about. With camera refinement on, every training view ``i``
+gets a rigid correction, a rotation vector ``w_i`` and a translation ``u_i`` in its camera's coordinates
+(OpenCV: x right, y down, z forward), both zero at the start::
+
+    viewmat'_i = D_i viewmat_i          D_i = [exp(w_i) | u_i]
+
+``|w_i|`` is the angle the camera turns about its centre and ``u_i`` (scene units) how far it moves, seen from
+the camera. The renderer takes no gradient in the view matrix, so the correction is applied to the Gaussians
+instead: rendering the field moved by the world transform ``T_i = inv(viewmat_i) D_i viewmat_i`` from the given
+camera is rendering the field from the corrected one (the view direction of the SH colours turns with it,
+:meth:`SegmentedField.render`). Composition is in float64; the renderer's float32 copy is made last.
+
+The corrections receive gradients through the view's reconstruction loss and have their own Adam
+(:meth:`CameraCorrections.make_optimizer`). A correction and a shift of the whole field are the same thing for
+one view, but not for all views at once: what the corrections learn is how the views disagree.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from dsg_gym.geometry import axis_angle_to_quat, quat_to_rotmat
+from train_world.capture.alignment import precise_rotation_deg
+
+__all__ = ["CAMERA_LR_FINAL_FACTOR", "CameraCorrections", "camera_lrs"]
+
+#: the camera learning rates decay exponentially over the refinement to this fraction of their start value
+CAMERA_LR_FINAL_FACTOR = 0.1
+
+
+def camera_lrs(
+    step: int, start: int, end: int, lr_translation: float, lr_rotation: float
+) -> tuple[float, float]:
+    """``(translation, rotation)`` learning rates at ``step``: the start values at ``start``, decaying
+    exponentially to :data:`CAMERA_LR_FINAL_FACTOR` of them at ``end``."""
+    t = min(max((step - start) / max(end - start, 1), 0.0), 1.0)
+    f = CAMERA_LR_FINAL_FACTOR**t
+    return lr_translation * f, lr_rotation * f
+
+
+class CameraCorrections:
+    """The corrections of the module docstring for training cameras ``viewmats [V,4,4]`` (world-to-camera).
+
+    ``rotvec`` and ``translation`` ``[V,3]`` float64 are the parameters (zero: the cameras as given)."""
+
+    def __init__(self, viewmats: torch.Tensor | np.ndarray):
+        vm = torch.as_tensor(np.asarray(viewmats, dtype=np.float64))
+        if vm.ndim != 3 or vm.shape[1:] != (4, 4):
+            raise ValueError(f"CameraCorrections: viewmats must be [V,4,4], got {tuple(vm.shape)}")
+        self.base = vm
+        self._base_inv = torch.linalg.inv(vm)
+        v = len(vm)
+        self.rotvec = torch.zeros(v, 3, dtype=torch.float64, requires_grad=True)
+        self.translation = torch.zeros(v, 3, dtype=torch.float64, requires_grad=True)
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def named_parameters(self) -> list[tuple[str, torch.Tensor]]:
+        return [("cameras.rotvec", self.rotvec), ("cameras.translation", self.translation)]
+
+    def make_optimizer(self, lr_translation: float, lr_rotation: float) -> torch.optim.Adam:
+        """One Adam with two groups: ``[rotvec]`` at ``lr_rotation`` (radians), ``[translation]`` at
+        ``lr_translation`` (scene units)."""
+        return torch.optim.Adam(
+            [
+                {"params": [self.rotvec], "lr": lr_rotation},
+                {"params": [self.translation], "lr": lr_translation},
+            ],
+            eps=1e-15,
+        )
+
+    def _corrections(self, index: torch.Tensor | slice) -> torch.Tensor:
+        """``D`` ``[n,4,4]`` float64 of the views ``index``, differentiable in the parameters."""
+        R = quat_to_rotmat(axis_angle_to_quat(self.rotvec[index]))
+        top = torch.cat([R, self.translation[index][:, :, None]], 2)
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(len(R), 1, 4)
+        return torch.cat([top, bottom], 1)
+
+    def transform(self, i: int) -> torch.Tensor:
+        """``T_i = inv(viewmat_i) D_i viewmat_i`` ``[4,4]`` float32: the world transform that, applied to the
+        Gaussians, renders view ``i`` as its corrected camera sees them (with gradients to the parameters)."""
+        D = self._corrections(slice(i, i + 1))[0]
+        return (self._base_inv[i] @ D @ self.base[i]).float()
+
+    @torch.no_grad()
+    def viewmats(self) -> torch.Tensor:
+        """The corrected cameras ``D_i viewmat_i`` ``[V,4,4]`` float64 (rigid)."""
+        return self._corrections(slice(None)) @ self.base
+
+    @torch.no_grad()
+    def summary(self, units: str) -> dict:
+        """How far the corrections moved the cameras: the median and largest angle (degrees) and distance
+        (scene units, and mm when ``units`` is metres) over the views."""
+        new = self.viewmats().numpy()
+        base = self.base.numpy()
+        ang = np.array([precise_rotation_deg(new[i, :3, :3] @ base[i, :3, :3].T) for i in range(len(new))])
+        centre = lambda m: -np.einsum("vji,vj->vi", m[:, :3, :3], m[:, :3, 3])  # noqa: E731
+        dist = np.linalg.norm(centre(new) - centre(base), axis=1)
+        out = {
+            "views": len(new),
+            "rotation_deg_median": float(np.median(ang)) if len(ang) else 0.0,
+            "rotation_deg_max": float(ang.max()) if len(ang) else 0.0,
+            "translation_median": float(np.median(dist)) if len(dist) else 0.0,
+            "translation_max": float(dist.max()) if len(dist) else 0.0,
+        }
+        if units == "metres":
+            out["translation_mm_median"] = out["translation_median"] * 1000.0
+            out["translation_mm_max"] = out["translation_max"] * 1000.0
+        return {k: (round(v, 6) if isinstance(v, float) and math.isfinite(v) else v) for k, v in out.items()}
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_tensors(self) -> dict[str, torch.Tensor]:
+        return {"cameras/rotvec": self.rotvec.detach(), "cameras/translation": self.translation.detach()}
+
+    @torch.no_grad()
+    def load_state_tensors(self, tensors: dict[str, torch.Tensor]) -> None:
+        for key, p in (("cameras/rotvec", self.rotvec), ("cameras/translation", self.translation)):
+            v = tensors[key]
+            if tuple(v.shape) != tuple(p.shape):
+                raise ValueError(f"checkpoint {key}: shape {tuple(v.shape)}, expected {tuple(p.shape)}")
+            p.copy_(v)

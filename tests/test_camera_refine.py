@@ -48,7 +48,9 @@ def _scene(n: int = 1500, seed: int = 0):
 
 def _cameras(v: int = 4) -> np.ndarray:
     angles = np.linspace(0, 2 * np.pi, v, endpoint=False)
-    return np.stack([look_at([0.5 * np.cos(a), 0.5 * np.sin(a), 0.45], [0, 0, 0], [0, 0, 1.0]) for a in angles])
+    return np.stack(
+        [look_at([0.5 * np.cos(a), 0.5 * np.sin(a), 0.45], [0, 0, 0], [0, 0, 1.0]) for a in angles]
+    )
 
 
 def _render(scene, viewmat, transform=None):
@@ -133,7 +135,8 @@ def test_perturbed_cameras_are_pulled_back_towards_the_truth():
     for _ in range(240):
         opt.zero_grad()
         loss = sum(
-            (_render(scene, given[i], cams.transform(i)) - targets[i]).square().mean() for i in range(len(given))
+            (_render(scene, given[i], cams.transform(i)) - targets[i]).square().mean()
+            for i in range(len(given))
         )
         loss.backward()
         opt.step()
@@ -203,11 +206,13 @@ def test_two_state_refined_cameras_resume_bit_for_bit_and_feed_the_refinement(ca
     from train_world.single_state.checkpoint import load_checkpoint
 
     est = _estimated(capture, tmp_path / "est")
-    common = ["--preset", "quick", "--iterations", "60", "--prune-every", "10", "--quiet", "--refine-steps", "0"]
+    common = "--preset quick --iterations 60 --prune-every 10 --quiet --refine-steps 0".split()
     assert train_cli.main_two_state([str(est), "--out", str(tmp_path / "full.dsgworld"), *common]) == 0
     err = capsys.readouterr().err
     assert "cameras refined" in err and "cameras of state2 refined: median" in err
-    cfg = train_cli.two_state_config(train_cli.two_state_parser().parse_args([str(est), "--out", "x", *common]))
+    cfg = train_cli.two_state_config(
+        train_cli.two_state_parser().parse_args([str(est), "--out", "x", *common])
+    )
     tr = DualTrainer(est, cfg, checkpoint=tmp_path / "res.dsgworld.ckpt")
     tr.train(progress=False, stop_after=45)
     assert tr.last_checkpoint_step is not None and 30 < tr.last_checkpoint_step <= 45

@@ -9,7 +9,8 @@ Per scene, each step a fresh process, in ``--work`` (kept) or a temporary folder
 2. ``dsg-capture photos --out est [--marker-size M]``: camera poses, table frame and object motions from the
    images alone (timed);
 3. ``dsg-train est --holdout-every 0``: the world from the photos, every photo training as every true view
-   trains the reference (timed, with its peak RSS);
+   trains the reference (timed, with its peak RSS); with ``--refine-cameras`` its cameras are refined in
+   training;
 4. ``dsg-train photos/ground_truth``: the reference, the same training on the true cameras and poses;
 5. ``dsg-eval --align-views 60`` of both worlds at the ground truth's test states (the photo world with
    ``--align-frames``): each test camera aligned to the world it scores before scoring, as pose-free
@@ -23,7 +24,8 @@ evaluations always run again.
 
 Writes ``{config, scenes: {S: {capture_s, train_s, photos_to_world_min, peak_rss_gib, photo: {psnr, ssim,
 mask_iou, psnr_unaligned}, reference: {...}, gap_db, gap_db_unaligned, motions: {object: {estimate_mm,
-estimate_rotation_deg, estimate_rotation_mod_symmetry_deg, refined_...}}}}, summary: {mean_gap_db,
+estimate_rotation_deg, estimate_rotation_mod_symmetry_deg, refined_...}},
+camera_refinement: {state: {rotation_deg_median, ...}}}}, summary: {mean_gap_db,
 mean_gap_db_unaligned, worst_gap_db, worst_estimate_mm, ..., slowest_min, mean_photo_psnr,
 mean_reference_psnr}, targets}``. The motions are the photo world's against the ground truth's (``dsg-eval``'s
 ``motion_errors``): as ``dsg-capture`` estimated them and as the joint phase refined them.
@@ -177,12 +179,21 @@ def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], m
         "reference": ref,
         "gap_db": round(ref["psnr"] - photo["psnr"], 3),
         "motions": motions,
+        "camera_refinement": _camera_refinement(d / "photo.dsgworld"),
         **(
             {"gap_db_unaligned": round(ref["psnr_unaligned"] - photo["psnr_unaligned"], 3)}
             if "psnr_unaligned" in photo and "psnr_unaligned" in ref
             else {}
         ),
     }
+
+
+def _camera_refinement(world: Path) -> dict[str, Any] | None:
+    """How far training moved the photo world's cameras (``metadata.camera_refinement``), or None when they
+    were not refined."""
+    from dsg_gym.world import load_world
+
+    return load_world(world).metadata.get("camera_refinement")
 
 
 def run(out: Path, scenes: list[str], work: Path | None, synth_args: list[str], train_args: list[str],
@@ -256,6 +267,11 @@ def main(argv: list[str] | None = None) -> int:
         metavar="W",
         help="dsg-train --depth-weight W for the photo world (with --stereo: its stereo depth)",
     )
+    p.add_argument(
+        "--refine-cameras",
+        action="store_true",
+        help="dsg-train --refine-cameras for the photo world (its cameras refined in training)",
+    )
     args = p.parse_args(argv)
     known = list(default_scene_names())
     scenes = known if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
@@ -271,6 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     ev = ["--align-views", str(args.align_views)] if args.align_views else []
     cap = ["--stereo"] if args.stereo else []
     photo_train = ["--depth-weight", str(args.depth_weight)] if args.depth_weight is not None else []
+    photo_train += ["--refine-cameras"] if args.refine_cameras else []
     r = run(out, scenes, args.work, synth, train, args.marker or None, ev, cap, photo_train)
     print(json.dumps(r["summary"]))
     return 0

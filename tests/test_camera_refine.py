@@ -1,6 +1,6 @@
 """Training cameras as parameters: a correction renders what the corrected camera sees, perturbed cameras are
-pulled back towards the truth, the default (refined for dsg-capture captures, fixed for synthetic ones), and
-both trainers store, checkpoint and resume the refined cameras."""
+pulled back towards the truth, the option (off by default), and both trainers store, checkpoint and resume
+the refined cameras."""
 
 from __future__ import annotations
 
@@ -159,21 +159,20 @@ def _estimated(src, dst):
     return dst
 
 
-def test_estimated_cameras_are_refined_by_default_and_synthetic_ones_fixed(capture, tmp_path):
+def test_cameras_are_refined_on_request_only(capture, tmp_path):
     est = _estimated(capture, tmp_path / "est")
 
     def two(path, *extra):
         args = train_cli.two_state_parser().parse_args([str(path), "--out", "x", "--preset", "quick", *extra])
-        return train_cli.two_state_config(args).base.refine_cameras
+        return train_cli.two_state_config(args).base
 
-    assert two(est) and not two(capture)
-    assert not two(est, "--fixed-cameras") and two(capture, "--refine-cameras")
-    with pytest.raises(SystemExit):
-        two(capture, "--refine-cameras", "--fixed-cameras")
+    assert not two(est).refine_cameras and not two(capture).refine_cameras  # estimated cameras too
+    cfg = two(est, "--refine-cameras", "--camera-lr-rotation", "2e-4")
+    assert cfg.refine_cameras and cfg.camera_lr_rotation == 2e-4 and cfg.camera_lr_translation == 1e-4
+    single = train_cli.single_state_parser().parse_args([str(capture), "--out", "x", "--refine-cameras"])
+    assert single.refine_cameras
     with pytest.raises(ValueError, match="camera_lr_rotation"):
-        from train_world.single_state.presets import TrainConfig, get_preset
-
-        TrainConfig(preset=get_preset("quick"), camera_lr_rotation=float("nan"))
+        two(capture, "--camera-lr-rotation", "nan")
 
 
 def test_single_state_world_stores_the_refined_training_cameras(capture, tmp_path, capsys):
@@ -206,7 +205,9 @@ def test_two_state_refined_cameras_resume_bit_for_bit_and_feed_the_refinement(ca
     from train_world.single_state.checkpoint import load_checkpoint
 
     est = _estimated(capture, tmp_path / "est")
-    common = "--preset quick --iterations 60 --prune-every 10 --quiet --refine-steps 0".split()
+    common = (
+        "--preset quick --iterations 60 --prune-every 10 --quiet --refine-steps 0 --refine-cameras".split()
+    )
     assert train_cli.main_two_state([str(est), "--out", str(tmp_path / "full.dsgworld"), *common]) == 0
     err = capsys.readouterr().err
     assert "cameras refined" in err and "cameras of state2 refined: median" in err

@@ -38,6 +38,7 @@ def test_photo_worlds_quick(tmp_path):
         s["reference"]["psnr_unaligned"] - s["photo"]["psnr_unaligned"], abs=1e-3
     )
     assert s["registered"] == {"state1": "24/24", "state2": "24/24"}
+    assert s["camera_refinement"] is None  # the photo world's cameras as dsg-capture estimated them
     for k in ("photo", "reference"):
         assert math.isfinite(s[k]["psnr"]) and 5 < s[k]["psnr"] < 60 and 0 <= s[k]["mask_iou"] <= 1
     assert s["gap_db"] == pytest.approx(s["reference"]["psnr"] - s["photo"]["psnr"], abs=1e-3)

@@ -262,7 +262,7 @@ def two_state_config(args: argparse.Namespace) -> DualConfig:
         if args.holdout_every is None
         else args.holdout_every,
         background=None if args.background is None else tuple(args.background),
-        **camera_options(args, args.capture),
+        **camera_options(args),
     )
     return DualConfig(
         base=base,
@@ -326,7 +326,7 @@ def main_single_state(argv: list[str] | None = None) -> int:
             single_state=args.single_state,
             holdout_every=args.holdout_every,
             background=None if args.background is None else tuple(args.background),
-            **camera_options(args, args.capture),
+            **camera_options(args),
         )
         t0 = time.perf_counter()
         data = load_training_data(args.capture, config)

@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
-
-from train_world.dual_state.views import motions_estimated
 
 __all__ = [
     "add_camera_argument",
@@ -48,25 +45,30 @@ def add_shell_argument(p: argparse.ArgumentParser) -> None:
 
 
 def add_camera_argument(p: argparse.ArgumentParser) -> None:
-    cams = p.add_mutually_exclusive_group()
-    cams.add_argument(
+    p.add_argument(
         "--refine-cameras",
-        dest="refine_cameras",
         action="store_true",
-        default=None,
-        help="optimise a pose correction of every training camera (train_world.single_state.camera_refine; "
-        "default when the capture's cameras are estimates, i.e. made by dsg-capture)",
+        help="optimise a pose correction of every training camera (train_world.single_state.camera_refine; off "
+        "by default: on dsg-capture captures it measured no gain, docs/benchmarks.md)",
     )
-    cams.add_argument(
-        "--fixed-cameras",
-        dest="refine_cameras",
-        action="store_false",
-        help="take the capture's cameras as exact (default for synthetic captures and NeRF-Blender data)",
+    p.add_argument(
+        "--camera-lr-rotation",
+        type=float,
+        default=1e-4,
+        help="with --refine-cameras: rotation learning rate in radians (default 1e-4)",
+    )
+    p.add_argument(
+        "--camera-lr-translation",
+        type=float,
+        default=1e-4,
+        help="with --refine-cameras: translation learning rate, times the scene extent (default 1e-4)",
     )
 
 
-def camera_options(args: argparse.Namespace, capture: Path) -> dict[str, Any]:
-    """``TrainConfig`` fields for ``--refine-cameras`` / ``--fixed-cameras`` / neither (refined when
-    ``capture`` was made by ``dsg-capture``)."""
-    refine = motions_estimated(capture) if args.refine_cameras is None else bool(args.refine_cameras)
-    return {"refine_cameras": refine}
+def camera_options(args: argparse.Namespace) -> dict[str, Any]:
+    """``TrainConfig`` fields for ``--refine-cameras`` and the camera learning rates."""
+    return {
+        "refine_cameras": bool(args.refine_cameras),
+        "camera_lr_rotation": args.camera_lr_rotation,
+        "camera_lr_translation": args.camera_lr_translation,
+    }

@@ -15,8 +15,12 @@ camera is rendering the field from the corrected one (the view direction of the 
 :meth:`SegmentedField.render`). Composition is in float64; the renderer's float32 copy is made last.
 
 The corrections receive gradients through the view's reconstruction loss and have their own Adam
-(:meth:`CameraCorrections.make_optimizer`). A correction and a shift of the whole field are the same thing for
-one view, but not for all views at once: what the corrections learn is how the views disagree.
+(:meth:`CameraCorrections.make_optimizer`). Training renders one view per step, so each view's correction is a
+parameter of its own: Adam skips a parameter without a gradient, so a view's correction and its moments change
+only at the steps that render it (one ``[V, 3]`` tensor would keep every view moving on its decaying momentum
+between its renders, by several times the learning rate per visit). A correction and a shift of the whole
+field are the same thing for one view, but not for all views at once: what the corrections learn is how the
+views disagree.
 """
 
 from __future__ import annotations
@@ -48,7 +52,8 @@ def camera_lrs(
 class CameraCorrections:
     """The corrections of the module docstring for training cameras ``viewmats [V,4,4]`` (world-to-camera).
 
-    ``rotvec`` and ``translation`` ``[V,3]`` float64 are the parameters (zero: the cameras as given)."""
+    The parameters are ``rotvecs[i]`` and ``translations[i]``, ``[3]`` float64 per view (zero: the cameras as
+    given); :attr:`rotvec` and :attr:`translation` are them stacked ``[V,3]`` (detached)."""
 
     def __init__(self, viewmats: torch.Tensor | np.ndarray):
         vm = torch.as_tensor(np.asarray(viewmats, dtype=np.float64))
@@ -57,30 +62,42 @@ class CameraCorrections:
         self.base = vm
         self._base_inv = torch.linalg.inv(vm)
         v = len(vm)
-        self.rotvec = torch.zeros(v, 3, dtype=torch.float64, requires_grad=True)
-        self.translation = torch.zeros(v, 3, dtype=torch.float64, requires_grad=True)
+        self.rotvecs = [torch.zeros(3, dtype=torch.float64, requires_grad=True) for _ in range(v)]
+        self.translations = [torch.zeros(3, dtype=torch.float64, requires_grad=True) for _ in range(v)]
 
     def __len__(self) -> int:
         return len(self.base)
 
+    @property
+    def rotvec(self) -> torch.Tensor:
+        return torch.stack(self.rotvecs).detach()
+
+    @property
+    def translation(self) -> torch.Tensor:
+        return torch.stack(self.translations).detach()
+
     def named_parameters(self) -> list[tuple[str, torch.Tensor]]:
-        return [("cameras.rotvec", self.rotvec), ("cameras.translation", self.translation)]
+        return [(f"cameras.rotvec.{i}", p) for i, p in enumerate(self.rotvecs)] + [
+            (f"cameras.translation.{i}", p) for i, p in enumerate(self.translations)
+        ]
 
     def make_optimizer(self, lr_translation: float, lr_rotation: float) -> torch.optim.Adam:
-        """One Adam with two groups: ``[rotvec]`` at ``lr_rotation`` (radians), ``[translation]`` at
+        """One Adam with two groups: the rotations at ``lr_rotation`` (radians), the translations at
         ``lr_translation`` (scene units)."""
         return torch.optim.Adam(
             [
-                {"params": [self.rotvec], "lr": lr_rotation},
-                {"params": [self.translation], "lr": lr_translation},
+                {"params": self.rotvecs, "lr": lr_rotation},
+                {"params": self.translations, "lr": lr_translation},
             ],
             eps=1e-15,
         )
 
-    def _corrections(self, index: torch.Tensor | slice) -> torch.Tensor:
+    def _corrections(self, index: slice) -> torch.Tensor:
         """``D`` ``[n,4,4]`` float64 of the views ``index``, differentiable in the parameters."""
-        R = quat_to_rotmat(axis_angle_to_quat(self.rotvec[index]))
-        top = torch.cat([R, self.translation[index][:, :, None]], 2)
+        w = torch.stack(self.rotvecs[index])
+        u = torch.stack(self.translations[index])
+        R = quat_to_rotmat(axis_angle_to_quat(w))
+        top = torch.cat([R, u[:, :, None]], 2)
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(len(R), 1, 4)
         return torch.cat([top, bottom], 1)
 
@@ -89,6 +106,11 @@ class CameraCorrections:
         Gaussians, renders view ``i`` as its corrected camera sees them (with gradients to the parameters)."""
         D = self._corrections(slice(i, i + 1))[0]
         return (self._base_inv[i] @ D @ self.base[i]).float()
+
+    @torch.no_grad()
+    def viewmat(self, i: int) -> torch.Tensor:
+        """View ``i``'s corrected camera ``[1,4,4]`` float32 (no gradient)."""
+        return (self._corrections(slice(i, i + 1)) @ self.base[i : i + 1]).float()
 
     @torch.no_grad()
     def viewmats(self) -> torch.Tensor:
@@ -122,8 +144,9 @@ class CameraCorrections:
 
     @torch.no_grad()
     def load_state_tensors(self, tensors: dict[str, torch.Tensor]) -> None:
-        for key, p in (("cameras/rotvec", self.rotvec), ("cameras/translation", self.translation)):
+        for key, ps in (("cameras/rotvec", self.rotvecs), ("cameras/translation", self.translations)):
             v = tensors[key]
-            if tuple(v.shape) != tuple(p.shape):
-                raise ValueError(f"checkpoint {key}: shape {tuple(v.shape)}, expected {tuple(p.shape)}")
-            p.copy_(v)
+            if tuple(v.shape) != (len(ps), 3):
+                raise ValueError(f"checkpoint {key}: shape {tuple(v.shape)}, expected {(len(ps), 3)}")
+            for p, row in zip(ps, v):
+                p.copy_(row)

@@ -153,9 +153,7 @@ class Trainer:
         """``[1,4,4]`` float32: training view ``i``'s camera as refined so far (no gradient), else as given."""
         if self.cameras is None or not self.cameras_refined_at(self.step):
             return self.data.viewmats[i : i + 1]
-        with torch.no_grad():
-            D = self.cameras._corrections(slice(i, i + 1))
-            return (D @ self.cameras.base[i : i + 1]).float()
+        return self.cameras.viewmat(i)
 
     def refined_data(self) -> TrainData:
         """:attr:`data` with the refined training cameras (in ``viewmats`` and among ``all_viewmats``); the

@@ -17,7 +17,7 @@ from dsg_gym.cameras import look_at
 from dsg_gym.world import load_world
 from train_world.capture.alignment import precise_rotation_deg
 from train_world.cli import train as train_cli
-from train_world.single_state.camera_refine import CameraCorrections, camera_lrs
+from train_world.single_state.camera_refine import CameraCorrections, correction_lrs
 from train_world.single_state.field import rigid_transform_gaussians
 
 SIZE = 48
@@ -125,10 +125,10 @@ def test_gradients_reach_the_rendered_view_only_and_adam_moves_it_alone():
     assert torch.equal(cams.rotvec[0], moved[0]) and torch.equal(cams.translation[0], moved[1])
     assert float(cams.translation[1].abs().sum()) > 0
     assert torch.equal(cams.viewmat(1)[0], cams.viewmats()[1].float())
-    assert camera_lrs(10, 10, 110, 1e-4, 3e-4) == (1e-4, 3e-4)
-    lt, lr = camera_lrs(110, 10, 110, 1e-4, 3e-4)
+    assert correction_lrs(10, 10, 110, 1e-4, 3e-4) == (1e-4, 3e-4)
+    lt, lr = correction_lrs(110, 10, 110, 1e-4, 3e-4)
     assert lt == pytest.approx(1e-5) and lr == pytest.approx(3e-5)
-    assert camera_lrs(0, 10, 110, 1.0, 1.0) == (1.0, 1.0)
+    assert correction_lrs(0, 10, 110, 1.0, 1.0) == (1.0, 1.0)
     with pytest.raises(ValueError, match="viewmats"):
         CameraCorrections(np.zeros((3, 3)))
 

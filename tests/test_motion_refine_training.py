@@ -15,9 +15,10 @@ from _captures import tiny_capture
 
 from dsg_gym.world import load_world
 from train_world.cli import train as train_cli
-from train_world.dual_state.motions import ObjectMotions, motion_error, motion_lrs
+from train_world.dual_state.motions import ObjectMotions, motion_error
 from train_world.dual_state.transfer import ObjectTransfer, relative_transforms
 from train_world.dual_state.views import motions_estimated
+from train_world.single_state.camera_refine import correction_lrs
 
 
 def _rot(axis, deg):
@@ -83,10 +84,10 @@ def test_gradients_reach_the_corrections_and_are_finite_at_zero():
 
 
 def test_motion_learning_rates_decay_over_the_joint_phase():
-    assert motion_lrs(100, 100, 200, 1e-4, 3e-4) == (1e-4, 3e-4)
-    lt, lr = motion_lrs(200, 100, 200, 1e-4, 3e-4)
+    assert correction_lrs(100, 100, 200, 1e-4, 3e-4) == (1e-4, 3e-4)
+    lt, lr = correction_lrs(200, 100, 200, 1e-4, 3e-4)
     assert lt == pytest.approx(1e-5) and lr == pytest.approx(3e-5)
-    assert motion_lrs(150, 100, 200, 1.0, 1.0)[0] == pytest.approx(0.1**0.5)
+    assert correction_lrs(150, 100, 200, 1.0, 1.0)[0] == pytest.approx(0.1**0.5)
 
 
 # ----------------------------------------------------------------------------------- training

@@ -36,26 +36,11 @@ from train_world.capture.alignment import precise_rotation_deg
 from train_world.dual_state.transfer import ObjectTransfer
 
 __all__ = [
-    "MOTION_LR_FINAL_FACTOR",
     "ObjectMotions",
     "motion_correction",
     "motion_error",
-    "motion_lrs",
     "motions_record",
 ]
-
-#: the motion learning rates decay exponentially over the joint phase to this fraction of their start value
-MOTION_LR_FINAL_FACTOR = 0.1
-
-
-def motion_lrs(
-    step: int, joint_start: int, iterations: int, lr_translation: float, lr_rotation: float
-) -> tuple[float, float]:
-    """``(translation, rotation)`` learning rates at ``step``: the start values at the first joint step, decaying
-    exponentially to :data:`MOTION_LR_FINAL_FACTOR` of them at the last step."""
-    t = min(max((step - joint_start) / max(iterations - joint_start, 1), 0.0), 1.0)
-    f = MOTION_LR_FINAL_FACTOR**t
-    return lr_translation * f, lr_rotation * f
 
 
 def motion_error(T: np.ndarray, T_ref: np.ndarray, P1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

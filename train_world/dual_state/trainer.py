@@ -38,7 +38,7 @@ from train_world.dual_state.coarse import coarse_views
 from train_world.dual_state.config import DualConfig, joint_start_step
 from train_world.dual_state.losses import align_loss, pseudo_loss
 from train_world.dual_state.merge import co_prune_masks, object_footprints_xy, robust_object_points
-from train_world.dual_state.motions import ObjectMotions, motion_lrs, motions_record
+from train_world.dual_state.motions import ObjectMotions, motions_record
 from train_world.dual_state.pseudo import footprint_radii, sample_pseudo_state
 from train_world.dual_state.transfer import (
     ObjectTransfer,
@@ -48,6 +48,7 @@ from train_world.dual_state.transfer import (
 )
 from train_world.dual_state.views import view_names
 from train_world.dual_state.world import MergeInputs, merged_world
+from train_world.single_state.camera_refine import correction_lrs
 from train_world.single_state.data import TrainData, load_training_data
 from train_world.single_state.field import SegmentedField
 from train_world.single_state.trainer import (
@@ -119,7 +120,7 @@ class DualTrainer:
     def _motion_lrs(self) -> tuple[float, float]:
         """``(translation, rotation)`` learning rates of the motion corrections at this step."""
         cfg = self.config
-        return motion_lrs(
+        return correction_lrs(
             self.step,
             self.joint_start,
             self.preset.iterations,

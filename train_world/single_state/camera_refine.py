@@ -1,8 +1,8 @@
-"""Training cameras as parameters: per-view pose corrections for captures whose cameras are estimates.
+"""Training cameras as parameters: per-view pose corrections (``dsg-train --refine-cameras``, off by default).
 
-Structure from motion (``dsg-capture``) gives cameras a few tenths of a degree and a few millimetres off. At
-128 px a 0.2 degree turn moves the image by half a pixel, so the views disagree about where each textured
-point is, and the field blurs what they disagree about. With camera refinement on, every training view ``i``
+At 128 px a camera 0.2 degrees off moves its image by half a pixel. Where training cameras disagree with each
+other by that much, the views disagree about where each textured point is, and the field blurs what they
+disagree about. With camera refinement on, every training view ``i``
 gets a rigid correction, a rotation vector ``w_i`` and a translation ``u_i`` in its camera's coordinates
 (OpenCV: x right, y down, z forward), both zero at the start::
 
@@ -33,19 +33,20 @@ import torch
 from dsg_gym.geometry import axis_angle_to_quat, quat_to_rotmat
 from train_world.capture.alignment import precise_rotation_deg
 
-__all__ = ["CAMERA_LR_FINAL_FACTOR", "CameraCorrections", "camera_lrs"]
+__all__ = ["CORRECTION_LR_FINAL_FACTOR", "CameraCorrections", "correction_lrs"]
 
-#: the camera learning rates decay exponentially over the refinement to this fraction of their start value
-CAMERA_LR_FINAL_FACTOR = 0.1
+#: the learning rates of rigid corrections (these cameras', :mod:`train_world.dual_state.motions`' objects')
+#: decay exponentially over their refinement to this fraction of their start value
+CORRECTION_LR_FINAL_FACTOR = 0.1
 
 
-def camera_lrs(
+def correction_lrs(
     step: int, start: int, end: int, lr_translation: float, lr_rotation: float
 ) -> tuple[float, float]:
-    """``(translation, rotation)`` learning rates at ``step``: the start values at ``start``, decaying
-    exponentially to :data:`CAMERA_LR_FINAL_FACTOR` of them at ``end``."""
+    """``(translation, rotation)`` learning rates of a rigid correction at ``step``: the start values at
+    ``start``, decaying exponentially to :data:`CORRECTION_LR_FINAL_FACTOR` of them at ``end``."""
     t = min(max((step - start) / max(end - start, 1), 0.0), 1.0)
-    f = CAMERA_LR_FINAL_FACTOR**t
+    f = CORRECTION_LR_FINAL_FACTOR**t
     return lr_translation * f, lr_rotation * f
 
 

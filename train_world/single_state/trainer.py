@@ -22,7 +22,7 @@ from tqdm import tqdm
 from dsg_gym.cameras import Cameras
 from dsg_gym.splat.finite import all_finite
 from dsg_gym.world import World, build_world, write_world
-from train_world.single_state.camera_refine import CameraCorrections, camera_lrs
+from train_world.single_state.camera_refine import CameraCorrections, correction_lrs
 from train_world.single_state.checkpoint import (
     load_checkpoint,
     optimizer_from_tensors,
@@ -132,7 +132,7 @@ class Trainer:
 
     def _camera_lrs(self, step: int | None = None) -> tuple[float, float]:
         c = self.config
-        return camera_lrs(
+        return correction_lrs(
             self.step if step is None else step, self.preset.densify_from, self.preset.iterations,
             c.camera_lr_translation * self.extent, c.camera_lr_rotation,
         )  # fmt: skip
@@ -162,7 +162,8 @@ class Trainer:
         if self.cameras is None:
             return d
         vm = self.cameras.viewmats().float()
-        train = [i for i in range(len(d.all_viewmats)) if i not in set(d.heldout)]
+        held = set(d.heldout)
+        train = [i for i in range(len(d.all_viewmats)) if i not in held]
         all_vm = np.array(d.all_viewmats, dtype=np.float32, copy=True)
         all_vm[train] = vm.numpy()
         return dataclasses.replace(d, viewmats=vm, all_viewmats=all_vm)

@@ -93,7 +93,7 @@ class _Project(torch.autograd.Function):
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, backgrounds, depths, rects, width, height):
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, depths, rects, width, height, absgrad):
         C = means2d.shape[0]
         D = colors.shape[2]
         dt = means2d.dtype
@@ -147,6 +147,7 @@ class _Composite(torch.autograd.Function):
         ctx.bins = (tile_offsets, gauss_offsets, gauss_pairs, tiles_x, tiles_y, pairs)
         ctx.size = (width, height)
         ctx.has_bg = backgrounds is not None
+        ctx.absgrad = bool(absgrad)
         ctx.save_for_backward(means2d, colors, opacities, out, out_T)
         return out, alphas
 
@@ -163,7 +164,7 @@ class _Composite(torch.autograd.Function):
         if v_alphas is None:
             v_alphas = torch.zeros_like(out_T)[..., None]
         vo = _np(v_out)
-        pair_grads = np.zeros((pairs[0].shape[0], D + 6), dtype=vo.dtype)
+        pair_grads = np.zeros((pairs[0].shape[0], D + (8 if ctx.absgrad else 6)), dtype=vo.dtype)
         raster_backward.composite_backward(
             *pairs,
             tile_offsets,
@@ -184,6 +185,7 @@ class _Composite(torch.autograd.Function):
         v_conics = torch.empty((C, N, 3), dtype=dt)
         v_colors = torch.empty(colors.shape, dtype=dt)
         v_opac = torch.empty(opacities.shape, dtype=dt)
+        abs_m2 = torch.zeros((C if ctx.absgrad else 0, N, 2), dtype=dt)
         raster_backward.reduce_pairs(
             pair_grads,
             gauss_offsets,
@@ -194,11 +196,14 @@ class _Composite(torch.autograd.Function):
             v_conics.numpy(),
             v_colors.numpy(),
             v_opac.numpy(),
+            abs_m2.numpy(),
         )
+        if ctx.absgrad:  # read by densification as ``meta["means2d"].absgrad`` (gsplat's convention)
+            means2d.absgrad = abs_m2
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[4]:
             v_bg = (v_out * out_T[..., None]).sum(dim=(1, 2))
-        return v_means2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None
+        return v_means2d, v_conics, v_colors, v_opac, v_bg, None, None, None, None, None
 
 
 class _Antialias(torch.autograd.Function):
@@ -232,8 +237,10 @@ def project(means, quats, scales, opacities, viewmats, Ks, width, height, near, 
     return _Project.apply(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d)
 
 
-def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, width, height):
-    return _Composite.apply(means2d, conics, colors, opacities, backgrounds, depths, rects, width, height)
+def composite(means2d, conics, opacities, colors, depths, rects, backgrounds, width, height, absgrad=False):
+    return _Composite.apply(
+        means2d, conics, colors, opacities, backgrounds, depths, rects, width, height, absgrad
+    )
 
 
 class _SH(torch.autograd.Function):

@@ -63,11 +63,13 @@ def composite_backward(
     pair_f, pair_r, pair_col, tile_offsets as for ``composite_forward``; out_colors [C,H,W,D] are the final
     colours including background, out_T [C,H,W] the final transmittance, v_colors [C,H,W,D] and
     v_alphas [C,H,W] the incoming gradients. Writes row ``pair_slot[s]`` of pair_grads [P, D + 6] for pair s:
-    (d colour [D], d means2d [2], d conic [3], d opacity); rows of pairs never reached stay as they were
-    (zero-initialise the array). With ``pair_slot`` from ``pair_slots``, each Gaussian's rows are contiguous
-    for ``reduce_pairs``.
+    (d colour [D], d means2d [2], d conic [3], d opacity); with [P, D + 8], also the sums over the pixels of
+    the absolute per-pixel means2d gradients (AbsGS's densification statistic). Rows of pairs never reached
+    stay as they were (zero-initialise the array). With ``pair_slot`` from ``pair_slots``, each Gaussian's rows
+    are contiguous for ``reduce_pairs``.
     """
     D = pair_col.shape[1]
+    with_abs = pair_grads.shape[1] >= D + 8
     C = out_T.shape[0]
     T = tiles_x * tiles_y
     amax = consts[0]
@@ -135,6 +137,8 @@ def composite_backward(
             gb = 0.0
             gc = 0.0
             go = 0.0
+            agu = 0.0
+            agv = 0.0
             if xr1 < xr0 or rows_finished(row_done, y0, y1, xr0 - px0, xr1 - px0):
                 continue  # the forward pass skipped it too; its slot stays zero
             rect_bits = column_bits(xr0 - px0, xr1 - px0)
@@ -183,8 +187,12 @@ def composite_backward(
                     ga += 0.5 * vsig * dxd * dxd
                     gb += vsig * dxd * dyd
                     gc += 0.5 * vsig * dyd * dyd
-                    gu -= vsig * (ca64 * dxd + cb64 * dyd)
-                    gv -= vsig * (cb64 * dxd + cc64 * dyd)
+                    du = vsig * (ca64 * dxd + cb64 * dyd)
+                    dv = vsig * (cb64 * dxd + cc64 * dyd)
+                    gu -= du
+                    gv -= dv
+                    agu += abs(du)
+                    agv += abs(dv)
             j = pair_slot[s]
             for d in range(D):
                 pair_grads[j, d] = gcol[d]
@@ -194,6 +202,9 @@ def composite_backward(
             pair_grads[j, D + 3] = gb
             pair_grads[j, D + 4] = gc
             pair_grads[j, D + 5] = go
+            if with_abs:
+                pair_grads[j, D + 6] = agu
+                pair_grads[j, D + 7] = agv
 
 
 @nb.njit(cache=True)
@@ -208,13 +219,16 @@ def pair_slots(gauss_pairs):
 
 
 @nb.njit(parallel=True, cache=True)
-def reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d, v_conics, v_colors, v_opacities):
+def reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d, v_conics, v_colors, v_opacities, abs_means2d):
     """Sum the pair gradients of each Gaussian in a fixed order (ascending tile).
 
-    pair_grads [P, D + 6] in Gaussian-major order (``composite_backward`` with ``pair_slots``), gauss_offsets
-    [C*N+1] from ``bin_gaussians``; v_means2d [C,N,2], v_conics [C,N,3]; v_colors [Cc,N,D] and v_opacities
-    [Co,N] are summed over cameras when they are shared (Cc == 1, Co == 1). All outputs are overwritten.
+    pair_grads [P, D + 6] (or [P, D + 8]) in Gaussian-major order (``composite_backward`` with ``pair_slots``),
+    gauss_offsets [C*N+1] from ``bin_gaussians``; v_means2d [C,N,2], v_conics [C,N,3]; v_colors [Cc,N,D] and
+    v_opacities [Co,N] are summed over cameras when they are shared (Cc == 1, Co == 1); abs_means2d [C,N,2]
+    gets the absolute gradient sums of [P, D + 8] pairs (pass [0,N,2] without them). All outputs are
+    overwritten.
     """
+    with_abs = abs_means2d.shape[0] == C
     Cc = v_colors.shape[0]
     Co = v_opacities.shape[0]
     for i in nb.prange(N):
@@ -230,6 +244,8 @@ def reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d, v_conics, v_colo
             gb = 0.0
             gcn = 0.0
             go = 0.0
+            au = 0.0
+            av = 0.0
             kc = 0 if Cc == 1 else c
             for s in range(gauss_offsets[c * N + i], gauss_offsets[c * N + i + 1]):
                 for d in range(D):
@@ -240,9 +256,15 @@ def reduce_pairs(pair_grads, gauss_offsets, C, N, D, v_means2d, v_conics, v_colo
                 gb += pair_grads[s, D + 3]
                 gcn += pair_grads[s, D + 4]
                 go += pair_grads[s, D + 5]
+                if with_abs:
+                    au += pair_grads[s, D + 6]
+                    av += pair_grads[s, D + 7]
             v_means2d[c, i, 0] = gu
             v_means2d[c, i, 1] = gv
             v_conics[c, i, 0] = ga
             v_conics[c, i, 1] = gb
             v_conics[c, i, 2] = gcn
             v_opacities[0 if Co == 1 else c, i] += go
+            if with_abs:
+                abs_means2d[c, i, 0] = au
+                abs_means2d[c, i, 1] = av

@@ -50,6 +50,7 @@ def rasterize(
     backend: str = "auto",
     rasterize_mode: str = "classic",
     eps2d: float = DEFAULT_EPS2D,
+    absgrad: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Render 3D Gaussians into C cameras (differentiable).
 
@@ -90,6 +91,9 @@ def rasterize(
             scale changes (objects moved nearer or farther, other resolutions).
         eps2d: the low-pass, in px^2, added to each projected 2D covariance's diagonal (3DGS and gsplat:
             0.3; Mip-Splatting pairs 0.1 with its 3D filter).
+        absgrad: after ``backward``, ``meta["means2d"].absgrad`` ``[C, N, 2]`` holds each Gaussian's sums over
+            the pixels of the absolute per-pixel gradients of its 2D mean (AbsGS's densification statistic:
+            opposite pixel gradients of a large Gaussian over texture do not cancel). Numba backend only.
 
     Returns:
         ``colors [C, H, W, D(+1)]``, ``alphas [C, H, W, 1]`` and ``meta`` with ``radii [C, N, 2]``
@@ -193,8 +197,11 @@ def rasterize(
     if feats.shape[0] not in (1, C):
         raise ValueError(f"colors has {feats.shape[0]} cameras, viewmats {C}")
     feats = feats.contiguous()
+    if absgrad and impl is not _numba_backend:
+        raise ValueError("absgrad needs the numba backend (backend='numba' or 'auto' on CPU)")
+    extra = {"absgrad": True} if absgrad else {}
     render_colors, render_alphas = impl.composite(
-        means2d, conics, opac2.contiguous(), feats, depths, rects, backgrounds, width, height
+        means2d, conics, opac2.contiguous(), feats, depths, rects, backgrounds, width, height, **extra
     )
     if render_mode.endswith("ED"):
         depth = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)

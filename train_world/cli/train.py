@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 from train_world.cli.train_options import (
+    add_absgrad_argument,
     add_camera_argument,
     add_depth_argument,
     add_mip_argument,
@@ -54,6 +55,7 @@ from train_world.dual_state.views import (
 from train_world.single_state.presets import (
     PRESETS,
     TrainConfig,
+    absgrad_overrides,
     depth_overrides,
     get_preset,
     mip_overrides,
@@ -120,6 +122,7 @@ def single_state_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_depth_argument(p)
+    add_absgrad_argument(p)
     add_shell_argument(p)
     add_camera_argument(p)
     return p
@@ -165,6 +168,7 @@ def two_state_parser() -> argparse.ArgumentParser:
     p.add_argument("--background", type=float, nargs=3, metavar=("R", "G", "B"))
     add_mip_argument(p)
     add_depth_argument(p)
+    add_absgrad_argument(p)
     add_shell_argument(p)
     add_camera_argument(p)
     p.add_argument("--seed", type=int, default=0)
@@ -253,6 +257,7 @@ def two_state_config(args: argparse.Namespace) -> DualConfig:
         scaled_preset(args.preset, args.iterations, args.max_gaussians, two_state=True),
         **mip_overrides(args.mip),
         **depth_overrides(args.depth_weight),
+        **absgrad_overrides(args.absgrad, args.absgrad_threshold),
     )
     base = TrainConfig(
         preset=preset,
@@ -317,6 +322,7 @@ def main_single_state(argv: list[str] | None = None) -> int:
             **({"iterations": args.iterations} if args.iterations else {}),
             **mip_overrides(args.mip),
             **depth_overrides(args.depth_weight),
+            **absgrad_overrides(args.absgrad, args.absgrad_threshold),
         )
         config = TrainConfig(
             preset=preset,

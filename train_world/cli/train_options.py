@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 __all__ = [
+    "add_absgrad_argument",
     "add_camera_argument",
     "add_depth_argument",
     "add_mip_argument",
@@ -21,6 +22,22 @@ def add_mip_argument(p: argparse.ArgumentParser) -> None:
         default=None,
         help="--mip: all of Mip-Splatting (antialiased rasterizer, 2D Mip filter, 3D smoothing filter 0.2); "
         "--no-mip: 3DGS's classic rasterizer (default: the preset's; default/paper: antialiased, no 3D filter)",
+    )
+
+
+def add_absgrad_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--absgrad",
+        action="store_true",
+        help="densify on absolute per-pixel 2D mean gradients (AbsGS; splits large Gaussians that blur texture; "
+        "off by default)",
+    )
+    p.add_argument(
+        "--absgrad-threshold",
+        type=float,
+        default=None,
+        metavar="G",
+        help="with --absgrad: the densification threshold (default: the preset's, 8e-4)",
     )
 
 

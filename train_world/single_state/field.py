@@ -281,6 +281,7 @@ class SegmentedField(nn.Module):
         with_features: bool = True,
         mask: torch.Tensor | None = None,
         with_depth: bool = False,
+        absgrad: bool = False,
     ) -> RenderOutput:
         """Render RGB (+ identity features) into ``C`` cameras in one rasterizer call.
 
@@ -290,7 +291,8 @@ class SegmentedField(nn.Module):
         degree used (default:
         the field's maximum); ``background``: ``[3]`` RGB (features get 0 behind); ``mask``: boolean ``[N]``
         selecting the Gaussians drawn; ``with_depth``: also the accumulated depth (the rasterizer's ``RGB+D``
-        mode, ``RenderOutput.depth``; divide by ``alpha`` for the expected depth), differentiable in the means.
+        mode, ``RenderOutput.depth``; divide by ``alpha`` for the expected depth), differentiable in the means;
+        ``absgrad``: the rasterizer's (absolute 2D mean gradients for densification after ``backward``).
         """
         means, quats = self.means, self.quats
         scales, opac = self.scales_opacities()
@@ -340,6 +342,7 @@ class SegmentedField(nn.Module):
             rasterize_mode=self.rasterize_mode,
             eps2d=self.eps2d,
             render_mode="RGB+D" if with_depth else "RGB",
+            absgrad=absgrad,
         )
         nf = feats.shape[1] if with_features else 0
         return RenderOutput(

@@ -63,6 +63,10 @@ class Preset:
     prune_big_world: float = 0.1
     reset_every: int = 3000
     max_gaussians: int = 300_000
+    # AbsGS: densify on the sums of absolute per-pixel 2D mean gradients, against ``absgrad_threshold``
+    # instead of ``grad_threshold`` (gsplat's 4x the 3DGS threshold)
+    absgrad: bool = False
+    absgrad_threshold: float = 8e-4
     # losses (Gaussian Grouping)
     lambda_dssim: float = 0.2
     lambda_identity: float = 1.0
@@ -102,6 +106,10 @@ class Preset:
         if not (math.isfinite(self.lambda_depth) and self.lambda_depth >= 0):
             raise ValueError(
                 f"preset {self.name!r}: lambda_depth must be a finite number >= 0, got {self.lambda_depth}"
+            )
+        if not (math.isfinite(self.absgrad_threshold) and self.absgrad_threshold > 0):
+            raise ValueError(
+                f"preset {self.name!r}: absgrad_threshold must be a finite number > 0, got {self.absgrad_threshold}"
             )
         if not self.filter3d_scale >= 0:
             raise ValueError(f"preset {self.name!r}: filter3d_scale must be >= 0, got {self.filter3d_scale}")
@@ -270,6 +278,14 @@ class TrainConfig:
         if d.get("background") is not None:
             d["background"] = tuple(float(x) for x in d["background"])
         return cls(**d)
+
+
+def absgrad_overrides(absgrad: bool, threshold: float | None = None) -> dict[str, Any]:
+    """Preset fields for ``--absgrad`` and ``--absgrad-threshold`` (none when neither is given)."""
+    out: dict[str, Any] = {"absgrad": True} if absgrad else {}
+    if threshold is not None:
+        out["absgrad_threshold"] = float(threshold)
+    return out
 
 
 def depth_overrides(weight: float | None) -> dict[str, float]:

@@ -10,7 +10,10 @@ reset zeroes the opacity moments. Usage per step::
     strategy.after_backward(step, field, optimizers, out.meta, generator)
 
 The view-space gradient is measured in NDC units (pixel gradient times ``(W/2, H/2)`` times the number of
-cameras), so the 3DGS threshold 2e-4 applies unchanged.
+cameras), so the 3DGS threshold 2e-4 applies unchanged. With ``absgrad`` (AbsGS) the statistic is the norm of
+the sums of absolute per-pixel gradients instead (the renders must be made with ``absgrad=True``:
+:meth:`DensifyStrategy.wants_absgrad`), so a large Gaussian over texture, whose pixels pull its mean in
+opposite directions, is split rather than left to blur; its threshold is ``absgrad_threshold``.
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ class StrategyConfig:
     prune_big_world: float = 0.1
     max_gaussians: int = 1_000_000
     scene_extent: float = 1.0
+    absgrad: bool = False
+    absgrad_threshold: float = 8e-4
 
     @classmethod
     def from_preset(cls, preset, scene_extent: float) -> StrategyConfig:
@@ -52,6 +57,8 @@ class StrategyConfig:
             prune_big_world=preset.prune_big_world,
             max_gaussians=preset.max_gaussians,
             scene_extent=float(scene_extent),
+            absgrad=preset.absgrad,
+            absgrad_threshold=preset.absgrad_threshold,
         )
 
 
@@ -111,11 +118,21 @@ class DensifyStrategy:
         if meta["means2d"].requires_grad:
             meta["means2d"].retain_grad()
 
+    def wants_absgrad(self, step: int) -> bool:
+        """Whether the render of the step after ``step`` steps must carry absolute 2D mean gradients."""
+        return self.config.absgrad and step < self.config.densify_until
+
     def accumulate(self, meta: dict) -> None:
         """Add this step's NDC-scaled 2D mean gradient norms of the visible Gaussians."""
         g = meta["means2d"].grad
         if g is None:
             return
+        if self.config.absgrad:
+            g = getattr(meta["means2d"], "absgrad", None)
+            if g is None:
+                raise ValueError(
+                    "absgrad densification needs renders made with absgrad=True (the numba backend)"
+                )
         n = g.shape[1]
         if self.grad2d.shape[0] != n:
             raise ValueError(f"strategy statistics cover {self.grad2d.shape[0]} Gaussians, render has {n}")
@@ -160,7 +177,7 @@ class DensifyStrategy:
     ) -> dict[str, int]:
         cfg = self.config
         avg = self.grad2d / self.count.clamp_min(1)
-        high = avg > cfg.grad_threshold
+        high = avg > (cfg.absgrad_threshold if cfg.absgrad else cfg.grad_threshold)
         room = cfg.max_gaussians - field.num
         if int(high.sum()) > max(room, 0):  # keep the strongest candidates under the cap
             keep_n = max(room, 0)

@@ -267,6 +267,7 @@ class Trainer:
             background=self.background,
             with_features=self.has_masks,
             with_depth=self.uses_depth,
+            absgrad=self.strategy.wants_absgrad(step),
         )
         gt = d.images[i]
         loss = photometric_loss(out.rgb[0], gt, p.lambda_dssim)

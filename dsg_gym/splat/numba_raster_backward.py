@@ -191,8 +191,9 @@ def composite_backward(
                     dv = vsig * (cb64 * dxd + cc64 * dyd)
                     gu -= du
                     gv -= dv
-                    agu += abs(du)
-                    agv += abs(dv)
+                    if with_abs:
+                        agu += abs(du)
+                        agv += abs(dv)
             j = pair_slot[s]
             for d in range(D):
                 pair_grads[j, d] = gcol[d]

@@ -180,6 +180,8 @@ def rasterize(
     if backend == "numba" and means.device.type != "cpu":
         raise ValueError("the numba backend needs CPU tensors; use backend='torch' on other devices")
     impl = _numba_backend if backend == "numba" else _torch_backend
+    if absgrad and impl is not _numba_backend:
+        raise ValueError("absgrad needs the numba backend (backend='numba' or 'auto' on CPU)")
 
     opac2 = opacities if opacities.dim() == 2 else opacities[None]
     means2d, conics, depths, radii, rects = impl.project(
@@ -197,8 +199,6 @@ def rasterize(
     if feats.shape[0] not in (1, C):
         raise ValueError(f"colors has {feats.shape[0]} cameras, viewmats {C}")
     feats = feats.contiguous()
-    if absgrad and impl is not _numba_backend:
-        raise ValueError("absgrad needs the numba backend (backend='numba' or 'auto' on CPU)")
     extra = {"absgrad": True} if absgrad else {}
     render_colors, render_alphas = impl.composite(
         means2d, conics, opac2.contiguous(), feats, depths, rects, backgrounds, width, height, **extra

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -111,6 +112,25 @@ def test_novel_state_uses_its_object_poses(trained):
     w, c = load_world(world), load_capture(cap, states=[])
     assert np.array_equal(ev._poses_for(w, cap, "test_0"), c.poses["test_0"])
     assert not np.allclose(c.poses["test_0"], w.poses["state1"])
+
+
+def test_test_state_poses_come_from_the_capture(trained):
+    """A world that holds other poses under a test state's name is scored at the capture's poses there; at a
+    training state it keeps its own (they may be refined)."""
+    cap, world, _ = trained
+    from dsg_gym.world import load_world
+    from train_world.capture import load_capture
+
+    w, c = load_world(world), load_capture(cap, states=[])
+    other = {}
+    for state, poses in (("state1", w.poses["state1"]), ("test_0", c.poses["test_0"])):
+        moved = np.array(poses, dtype=np.float64)
+        moved[:, :3, 3] += 0.05  # the same objects, 5 cm away
+        other[state] = moved
+    w2 = dataclasses.replace(w, poses={**w.poses, **other})
+    assert np.array_equal(ev._poses_for(w2, cap, "test_0"), c.poses["test_0"])
+    assert np.array_equal(ev._poses_for(w2, cap, "state1"), other["state1"])
+    assert not np.allclose(other["state1"], c.poses["state1"])
 
 
 def test_metric_definitions():

@@ -131,12 +131,15 @@ def render_gaussians(
 def _poses_for(
     world: World, capture: Path, state: str, alignment: FrameAlignment | None = None
 ) -> np.ndarray:
-    """The world-frame object poses at ``state``: the world's own when it holds the state and shares the
-    capture's frame, else the capture's; through ``alignment``, the capture's motion from the world's
-    reference state moved into the world's frame (:meth:`FrameAlignment.poses`)."""
-    if state in world.poses and (alignment is None or alignment.identity):
-        return world.poses[state]
+    """The world-frame object poses at ``state``. At a test state of the capture, the capture's (the truth the
+    views are scored against, even where the world holds other poses under that name); at another state, the
+    world's own when it holds the state and shares the capture's frame (they may be refined), else the
+    capture's. Through ``alignment``, the capture's motion from the world's reference state moved into the
+    world's frame (:meth:`FrameAlignment.poses`)."""
     cap = load_capture(capture, states=[], load_depth=False)
+    is_test = cap.splits.get(state) == "test" and state in cap.poses
+    if state in world.poses and not is_test and (alignment is None or alignment.identity):
+        return world.poses[state]
     if state not in cap.poses:
         raise ValueError(f"{capture}: state {state!r} has no object poses in scene.json")
     if cap.object_ids != world.object_ids:

@@ -39,6 +39,19 @@ from train_world.capture.format import atomic_write_json
 from ._results import default_out
 
 
+def _sync(folder: Path | None, timeout: float = 600.0) -> None:
+    """Write ``folder/ready`` and wait until ``folder/go`` exists (``benchmarks.train_shared`` starts the
+    competing job in between, once this process has chosen its OpenMP waiting and loaded its fields)."""
+    if folder is None:
+        return
+    (folder / "ready").touch()
+    t0 = time.monotonic()
+    while not (folder / "go").exists():
+        if time.monotonic() - t0 > timeout:
+            raise TimeoutError(f"{folder / 'go'} did not appear within {timeout:.0f} s")
+        time.sleep(0.05)
+
+
 def _time_steps(trainer, n: int, warmup: int) -> list[float]:
     for _ in range(warmup):
         trainer.train_step()
@@ -97,6 +110,7 @@ def run(
     capture: Path | None = None,
     iterations: int | None = None,
     seed: int = 0,
+    sync: Path | None = None,
 ) -> dict[str, Any]:
     import numba
     import torch
@@ -132,6 +146,7 @@ def run(
                     f"{checkpoint}: taken at step {trainer.step}, not at the joint phase's start "
                     f"({trainer.joint_start})"
                 )
+            _sync(sync)
             # reconstruction steps on the trained fields: the joint terms switched off, then the fields restored
             trainer.config = dataclasses.replace(cfg, use_align=False, use_prune=False, use_pseudo=False)
             recon = _time_steps(trainer, steps, warmup)
@@ -143,6 +158,7 @@ def run(
                     f"--warmup + --steps must stay within the reconstruction phase "
                     f"({trainer.joint_start} steps)"
                 )
+            _sync(sync)
             recon = _time_steps(trainer, steps, warmup)
             trainer.step = trainer.t1.step = trainer.t2.step = trainer.joint_start
         joint = _time_steps(trainer, steps, warmup)
@@ -209,6 +225,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=5, help="untimed steps before each phase (default 5)")
     p.add_argument("--profile", action="store_true", help="also profile the joint steps (cProfile)")
     p.add_argument("--quick", action="store_true", help="a 24x24 scene and the quick preset (for tests)")
+    p.add_argument(
+        "--sync",
+        type=Path,
+        help="a folder: once the fields are loaded, write FOLDER/ready and wait for FOLDER/go before the "
+        "first step (lets another job start in between)",
+    )
     args = p.parse_args(argv)
     args.out = args.out or default_out("train_step")
     if args.steps < 1 or args.warmup < 0:
@@ -226,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
         capture=args.capture,
         iterations=args.iterations,
         seed=args.seed,
+        sync=args.sync,
     )
     print(json.dumps({k: r[k] for k in ("recon", "joint", "joint_over_recon")}))
     return 0

@@ -1,67 +1,36 @@
-"""How a training process's two OpenMP thread pools wait between parallel regions.
+"""Threads of a training process: one OpenMP pool that sleeps, torch's operations on one thread.
 
-torch and numba each load their own GNU OpenMP runtime (``torch/lib/libgomp.so.1`` and the system's), and
-each reads ``OMP_WAIT_POLICY`` once, when it loads. The two pools see different work:
+torch ships its own GNU OpenMP runtime (``torch/lib/libgomp.so.1``) and loads it into the global symbol
+scope; numba's OpenMP layer, loaded later, links the system's ``libgomp.so.1``, but its parallel regions bind
+to the runtime loaded first. So a training process has **one** OpenMP pool, serving torch's operations and
+numba's kernels, and its waiting is what ``OMP_WAIT_POLICY`` (or ``GOMP_SPINCOUNT``) said when torch loaded.
 
-* torch runs hundreds of small parallel operations per training step (every op on more than 32k elements:
-  the render's activations and transforms, the losses, their backward, Adam). With sleeping workers each one
-  pays a futex wake-up, several times the cost of the operation itself.
-* numba runs a few dozen long kernels per step (projection, compositing), where a wake-up is noise.
+What :func:`configure` chooses, before torch loads (``import train_world`` calls it):
 
-So by default (``OMP_WAIT_POLICY`` unset) torch's pool keeps libgomp's default policy (spin a while, then
-sleep) and numba's pool sleeps (``PASSIVE``): joint steps are faster than with both pools passive
-(``python -m benchmarks.omp_waiting``; figures in docs/benchmarks.md). Spinning costs dearly when another
-process competes for the cores, so when other processes already keep the CPUs busy as this process starts
-(over half a core, sampled from ``/proc/stat`` for 0.15 s) both pools sleep: of two trainings started a few
-seconds apart, the first spins and the second, seeing it, sleeps. A policy in the environment always wins,
-for both pools.
+* **Waiting: the pool sleeps** (``PASSIVE``), unless ``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT`` is set, which
+  then applies as set. A spinning pool is a little faster alone, but collapses when another job starts
+  beside the training: the competitor's threads wait for cores the spinning threads hold, and every parallel
+  region of both processes pays for it (``python -m benchmarks.train_shared``; figures in docs/benchmarks.md).
+* **torch runs its operations on one thread**, unless ``OMP_NUM_THREADS`` is set (then torch takes that
+  count). A training step runs hundreds of small torch operations, and the heavy work (projection,
+  compositing and its gradients) runs in numba's kernels on all of numba's threads (``NUMBA_NUM_THREADS``).
+  Two-thread torch operations gain little alone and stall whenever another process holds a core. One thread
+  also makes a training repeat bit for bit at any numba thread count: numba's kernels sum in a fixed order,
+  and torch splits its reductions by its own thread count.
 
-Waiting changes timing only: results are the same bits either way. The environment is left as it was found
-(numba's pool is loaded here, while the variable says ``PASSIVE``), so child processes decide for themselves.
+The environment is left as it was found, so child processes decide for themselves. :func:`waiting` reports
+what was chosen. A process that imported torch before ``train_world`` keeps the waiting it loaded with; the
+thread count is set either way.
 """
 
 from __future__ import annotations
 
 import os
 import sys
-import time
 
-__all__ = ["busy_cores_of_others", "configure", "waiting"]
+__all__ = ["configure", "waiting"]
 
-_SAMPLE_SECONDS = 0.15
-_BUSY_CORES = 0.5
 _waiting = "not configured"
-
-
-def _read_cpu_jiffies() -> tuple[int, int, int]:
-    """(busy jiffies of all CPUs, total jiffies of all CPUs, jiffies of this process) from ``/proc``."""
-    with open("/proc/stat") as f:
-        fields = [int(x) for x in f.readline().split()[1:]]
-    total = sum(fields[:8])  # user nice system idle iowait irq softirq steal (guest time is inside user)
-    idle = fields[3] + fields[4]
-    with open("/proc/self/stat") as f:
-        own = f.read().rsplit(")", 1)[1].split()
-    return total - idle, total, int(own[11]) + int(own[12])  # utime + stime
-
-
-def busy_cores_of_others(before: tuple[int, int, int], after: tuple[int, int, int], cpus: int) -> float:
-    """Cores kept busy by other processes between two :func:`_read_cpu_jiffies` samples (``>= 0``)."""
-    busy = after[0] - before[0]
-    total = after[1] - before[1]
-    own = after[2] - before[2]
-    if total <= 0:
-        return 0.0
-    return max(0.0, (busy - own) / total * cpus)
-
-
-def _others_busy() -> bool:
-    try:
-        a = _read_cpu_jiffies()
-        time.sleep(_SAMPLE_SECONDS)
-        b = _read_cpu_jiffies()
-    except (OSError, ValueError, IndexError):  # no /proc (not Linux): assume an idle machine
-        return False
-    return busy_cores_of_others(a, b, os.cpu_count() or 1) > _BUSY_CORES
 
 
 def _numba_pool_loaded() -> bool:
@@ -70,40 +39,48 @@ def _numba_pool_loaded() -> bool:
     return bool(getattr(parallel, "_is_initialized", False))
 
 
+def _torch_threads() -> int:
+    raw = os.environ.get("OMP_NUM_THREADS", "").split(",")[0].strip()
+    try:
+        n = int(raw)
+    except ValueError:
+        return 1
+    return max(1, n)
+
+
 def configure() -> str:
-    """Choose the two pools' waiting (module docstring) before torch and numba load OpenMP; returns and
-    remembers what was done (:func:`waiting`). Call once, before torch is imported; later calls return the
-    first answer."""
+    """Choose the pool's waiting and torch's thread count (module docstring) before torch loads OpenMP;
+    returns and remembers what was done (:func:`waiting`). Call once, before torch is imported; later calls
+    return the first answer."""
     global _waiting
     if _waiting != "not configured":
         return _waiting
-    if "OMP_WAIT_POLICY" in os.environ:
-        _waiting = f"OMP_WAIT_POLICY={os.environ['OMP_WAIT_POLICY']} from the environment (both pools)"
-        return _waiting
+    preset = [k for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT") if k in os.environ]
     torch_loaded, numba_loaded = "torch" in sys.modules, _numba_pool_loaded()
-    if torch_loaded:
-        torch_waits = "as loaded before train_world"
-    elif _others_busy():
-        torch_waits = "sleeps (other processes were using the CPUs at start)"
-        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+    if preset:
+        waits = "as set: " + ", ".join(f"{k}={os.environ[k]}" for k in preset)
+    elif torch_loaded or numba_loaded:
+        waits = "as loaded before train_world"
     else:
-        torch_waits = "spins, then sleeps"
+        waits = "sleeps"
+    set_here = not preset and not torch_loaded and not numba_loaded
     try:
-        import torch  # noqa: F401  (its OpenMP runtime reads the policy now)
-
-        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+        if set_here:
+            os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
         import numba
+        import torch  # its OpenMP runtime reads the policy now
 
-        numba.get_num_threads()  # loads numba's threading layer, and its OpenMP runtime reads PASSIVE
+        numba.get_num_threads()  # numba's layer starts and sets the pool's thread count to its own
     finally:
-        os.environ.pop("OMP_WAIT_POLICY", None)
-    import numba
-
-    if numba.threading_layer() != "omp":
-        numba_waits = f"layer is {numba.threading_layer()} (not OpenMP)"
-    else:
-        numba_waits = "as loaded before train_world" if numba_loaded else "sleeps"
-    _waiting = f"torch's OpenMP pool {torch_waits}; numba's {numba_waits}"
+        if set_here:
+            os.environ.pop("OMP_WAIT_POLICY", None)
+    n = _torch_threads()
+    torch.set_num_threads(n)  # after numba's start, which reset it
+    layer = numba.threading_layer()
+    pool = "the OpenMP pool" if layer == "omp" else f"torch's OpenMP pool (numba's layer is {layer})"
+    _waiting = (
+        f"{pool} {waits}; torch on {n} thread{'s' if n != 1 else ''}, numba on {numba.get_num_threads()}"
+    )
     return _waiting
 
 

@@ -5,7 +5,7 @@ Modules: :mod:`.presets` (configuration), :mod:`.data` (views to train on), :mod
 (densification), :mod:`.checkpoint` (pickle-free checkpoints), :mod:`.trainer` (the loop). The ``dsg-train``
 command is :mod:`train_world.cli.train`.
 
-How the OpenMP thread pools of torch and numba wait is set when ``train_world`` is imported
+How the OpenMP pool waits and how many threads torch uses are set when ``train_world`` is imported
 (:mod:`train_world._openmp`).
 """
 

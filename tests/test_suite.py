@@ -40,10 +40,13 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
             "--max-gaussians",
             "4000",
             "--mip",
+            "--support-weight",
+            "0.25",
         ]
     )
     assert rc == 0
     table = json.loads((out / "table.json").read_text())
+    assert table["support_weight"] == 0.25
     runs = table["scenes"]["two_blocks"]
     assert set(runs) == {"a", "b", "BC", "BCP"}
     for m, r in runs.items():
@@ -51,6 +54,7 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
         assert set(r["per_state"]) == {"test_0"}
     wdir = out / "worlds" / "two_blocks"
     assert table["mip"] is True  # every world trained (or derived) with the Mip-Splatting filters
+    assert load_world(wdir / "BCP.dsgworld").metadata["dual"]["support_weight"] == 0.25
     assert all(
         load_world(wdir / f"{m}.dsgworld").splat_options == {"rasterize_mode": "antialiased", "eps2d": 0.1}
         for m in runs
@@ -119,6 +123,8 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
                     "--max-gaussians",
                     "4000",
                     "--mip",
+                    "--support-weight",
+                    "0.25",
                 ]
             )
             == 0
@@ -227,6 +233,9 @@ def test_merge_joins_partial_runs_later_wins_and_checks_settings(tmp_path):
     p3 = tmp_path / "r3.json"
     p3.write_text(json.dumps(_table({"two_blocks": {"a": _run(1.0, 1)}}, iterations=2000)))
     assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p1), str(p3)]) == 2
+    p4 = tmp_path / "r4.json"
+    p4.write_text(json.dumps(_table({"two_blocks": {"a": _run(1.0, 1)}}, support_weight=0.1)))
+    assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(p1), str(p4)]) == 2
     assert not (tmp_path / "bad").exists()
     # dsg-eval --suite is dsg-suite
     assert ev_main(["--suite", "--out", str(tmp_path / "via_eval"), "--merge", str(p1), str(p2)]) == 0

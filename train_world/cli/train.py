@@ -229,6 +229,14 @@ def two_state_parser() -> argparse.ArgumentParser:
         help=f"motion refinement: rotation learning rate in radians (default {DualConfig.motion_lr_rotation:g})",
     )
     p.add_argument(
+        "--support-weight",
+        type=float,
+        default=0.0,
+        metavar="W",
+        help="weight of the support term, which keeps object Gaussians above the table top, in the joint "
+        "phase and the refinement (default 0: off; captures with a table and masks only)",
+    )
+    p.add_argument(
         "--refine-steps",
         type=int,
         metavar="N",
@@ -286,6 +294,7 @@ def two_state_config(args: argparse.Namespace) -> DualConfig:
         else args.refine_motions,
         motion_lr_translation=args.motion_lr_translation,
         motion_lr_rotation=args.motion_lr_rotation,
+        support_weight=args.support_weight,
     )
 
 
@@ -393,6 +402,8 @@ def main_two_state(argv: list[str] | None = None) -> int:
         )
         args.out.parent.mkdir(parents=True, exist_ok=True)
         trainer = DualTrainer(args.capture, config, checkpoint=ckpt)
+        if trainer.table_bounds is not None and trainer.has_masks:
+            refine = dataclasses.replace(refine, support_weight=config.support_weight)
         if args.resume and ckpt.exists():
             trainer.load_checkpoint()
             print(f"dsg-train: resumed from {ckpt} at step {trainer.step}", file=sys.stderr)

@@ -20,6 +20,7 @@ BRANCH_OPTIONS = (
     "motion_lr_translation",
     "motion_lr_rotation",
     "align_downscale",
+    "support_weight",
 )
 
 
@@ -51,7 +52,10 @@ class DualConfig:
 
     ``align_downscale``: the cross-state renders (``L_align``, ``L_pseudo``) at ``1/align_downscale`` of the
     training resolution (:mod:`.coarse`; 1: full resolution, as in the paper). The reconstruction renders stay
-    at full resolution."""
+    at full resolution.
+
+    ``support_weight``: weight of ``L_support`` (:func:`.losses.support_loss`: object Gaussians reaching below
+    the table top) in the joint phase, for captures with a table (0: off, as in the paper)."""
 
     base: TrainConfig
     states: tuple[str, str] = ("state1", "state2")
@@ -70,6 +74,7 @@ class DualConfig:
     motion_lr_translation: float = 1e-4
     motion_lr_rotation: float = 3e-4
     align_downscale: int = 1
+    support_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.joint_from <= 1.0:
@@ -84,6 +89,8 @@ class DualConfig:
             raise ValueError(f"align_downscale must be an integer >= 1, got {self.align_downscale!r}")
         if self.align_downscale < 1:
             raise ValueError(f"align_downscale must be an integer >= 1, got {self.align_downscale}")
+        if not (math.isfinite(self.support_weight) and self.support_weight >= 0):
+            raise ValueError(f"support_weight must be a finite number >= 0, got {self.support_weight}")
         for name in ("motion_lr_translation", "motion_lr_rotation"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):

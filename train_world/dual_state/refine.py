@@ -34,6 +34,7 @@ from tqdm import tqdm
 
 from dsg_gym.gaussians import GaussianSet, activate_opacity, activate_scale
 from dsg_gym.world import World, WorldObject
+from train_world.dual_state.losses import support_loss
 from train_world.dual_state.transfer import ObjectTransfer
 from train_world.single_state.field import SegmentedField
 from train_world.single_state.losses import photometric_loss
@@ -44,7 +45,9 @@ __all__ = ["RefineConfig", "StateViews", "refine_world", "training_views_of"]
 @dataclass(frozen=True)
 class RefineConfig:
     """``steps``: Adam steps (0: off); learning rates at step 0 (``means`` in scene units, i.e. not scaled by the
-    extent), decaying linearly to 0; ``lambda_dssim``: the D-SSIM weight of the loss; ``seed``: view order."""
+    extent), decaying linearly to 0; ``lambda_dssim``: the D-SSIM weight of the loss; ``seed``: view order;
+    ``support_weight``: weight of ``L_support`` (:func:`.losses.support_loss`) on the objects' Gaussians at the
+    pose of the state each step renders (0: off; only for worlds whose table top is z = 0)."""
 
     steps: int = 3000
     lr_means: float = 1.6e-5
@@ -55,12 +58,13 @@ class RefineConfig:
     lr_shN: float = 2.5e-3 / 20
     lambda_dssim: float = 0.2
     seed: int = 0
+    support_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if int(self.steps) != self.steps or self.steps < 0:
             raise ValueError(f"refine steps must be an integer >= 0, got {self.steps}")
         for f in dataclasses.fields(self):
-            if f.name.startswith("lr_") or f.name == "lambda_dssim":
+            if f.name.startswith("lr_") or f.name in ("lambda_dssim", "support_weight"):
                 v = getattr(self, f.name)
                 if not (math.isfinite(v) and v >= 0):
                     raise ValueError(f"refine {f.name} must be a finite number >= 0, got {v}")
@@ -173,6 +177,15 @@ def refine_world(
         for s in views
     }
     c = config
+    n_bg = world.background.num
+    object_poses = {  # each object Gaussian's pose at each state (object frame -> table frame)
+        s: torch.from_numpy(
+            np.repeat(
+                np.asarray(world.poses[s], np.float32), [world.objects[i].gaussians.num for i in ids], axis=0
+            )
+        )
+        for s in views
+    }
     lrs = {
         "means": c.lr_means,
         "quats": c.lr_quats,
@@ -205,6 +218,11 @@ def refine_world(
             with_features=False,
         )
         loss = photometric_loss(out.rgb, v.images[j : j + 1], c.lambda_dssim)
+        if c.support_weight > 0:
+            o = slice(n_bg, None)
+            loss = loss + c.support_weight * support_loss(
+                f.means[o], f.quats[o], f.log_scales[o], f.opacity_logits[o], object_poses[s]
+            )
         if not torch.isfinite(loss):
             raise FloatingPointError(f"refine_world: loss is {float(loss)} at step {i}")
         opt.zero_grad(set_to_none=True)

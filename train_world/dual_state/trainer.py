@@ -36,7 +36,7 @@ from tqdm import tqdm
 from train_world.dual_state.checkpoint import load_dual_checkpoint, save_dual_checkpoint
 from train_world.dual_state.coarse import coarse_views
 from train_world.dual_state.config import DualConfig, joint_start_step
-from train_world.dual_state.losses import align_loss, pseudo_loss
+from train_world.dual_state.losses import align_loss, pseudo_loss, support_loss
 from train_world.dual_state.merge import co_prune_masks, object_footprints_xy, robust_object_points
 from train_world.dual_state.motions import ObjectMotions, motions_record
 from train_world.dual_state.pseudo import footprint_radii, sample_pseudo_state
@@ -255,6 +255,12 @@ class DualTrainer:
         self.prune_log.append(info)
         return info
 
+    @staticmethod
+    def _support(t: Trainer, labels: torch.Tensor) -> torch.Tensor:
+        """``L_support`` of the field's object Gaussians (class > 0), which stand in the table frame."""
+        f, obj = t.field, labels > 0
+        return support_loss(f.means[obj], f.quats[obj], f.log_scales[obj], f.opacity_logits[obj])
+
     # ------------------------------------------------------------------ one step
     def train_step(self) -> dict[str, float]:
         cfg, p = self.config, self.preset
@@ -266,7 +272,8 @@ class DualTrainer:
         loss = l_r1 + l_r2
         stats = {"psnr": 0.5 * (psnr1 + psnr2)}
         joint = self.step >= self.joint_start
-        if joint and (cfg.use_align or cfg.use_pseudo):
+        support = joint and cfg.support_weight > 0 and self.table_bounds is not None and self.has_masks
+        if joint and (cfg.use_align or cfg.use_pseudo or support):
             lab1, lab2 = self.labels()
         if joint and cfg.use_align:
             if self.motions is not None:  # the motions take gradients through the transferred Gaussians
@@ -298,6 +305,10 @@ class DualTrainer:
             l_p = pseudo_loss(oa.rgb[0], fa, ob.rgb[0], fb, self.classifier)
             loss = loss + cfg.lambda_pseudo * l_p
             stats["pseudo"] = float(l_p.detach())
+        if support:
+            l_s = self._support(t1, lab1) + self._support(t2, lab2)
+            loss = loss + cfg.support_weight * l_s
+            stats["support"] = float(l_s.detach())
         stats["loss"] = float(loss.detach())
         if not math.isfinite(stats["loss"]):
             raise TrainingDiverged(f"loss became {stats['loss']} at step {self.step + 1}")

@@ -47,7 +47,7 @@ __all__ = ["METHODS", "merge_tables", "run_suite"]
 
 # settings that must agree for runs to share one table
 _SETTINGS = ("preset", "iterations", "mip", "max_gaussians", "synth_args", "seed", "pseudo_every",
-             "align_downscale")  # fmt: skip
+             "align_downscale", "support_weight")  # fmt: skip
 
 # name -> (label in the table, extra dsg-train options or None for baselines)
 METHODS: dict[str, tuple[str, list[str] | None]] = {
@@ -293,6 +293,7 @@ def run_suite(
     max_gaussians: int | None = None,
     mip: bool | None = None,
     refine_steps: int | None = None,
+    support_weight: float | None = None,
 ) -> dict[str, Any]:
     """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``.
     ``refine_steps``: refinement steps of ours (``dsg-train --refine-steps``; ``None``: the preset's, 0: the
@@ -318,6 +319,7 @@ def run_suite(
         "seed": seed,
         "pseudo_every": pseudo_every,
         "align_downscale": align_downscale,
+        "support_weight": support_weight,
         "two_state_schedule": two_state_schedule(preset, iterations, refine_steps),
         "scenes": {},
         "methods": methods,
@@ -379,6 +381,7 @@ def run_suite(
             "--quiet",
             *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]),
             *([] if align_downscale is None else ["--align-downscale", str(align_downscale)]),
+            *([] if support_weight is None else ["--support-weight", repr(float(support_weight))]),
             "--resume",
             *it,
             *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))]),

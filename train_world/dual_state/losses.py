@@ -95,11 +95,12 @@ def support_loss(
     """
     if means.shape[0] == 0:
         return means.sum() * 0.0
-    rz = quat_to_rotmat(quats)[:, 2, :]  # [N, 3]: the z row of the Gaussian's rotation
-    z = means[:, 2]
-    if poses is not None:
+    rot = quat_to_rotmat(quats)  # [N, 3, 3]
+    if poses is None:
+        z, rz = means[:, 2], rot[:, 2, :]  # rz: the z row of the Gaussian's rotation
+    else:
         z = (poses[:, 2, :3] * means).sum(-1) + poses[:, 2, 3]
-        rz = torch.einsum("nj,nji->ni", poses[:, 2, :3], quat_to_rotmat(quats))
+        rz = torch.einsum("nj,nji->ni", poses[:, 2, :3], rot)
     s_z = ((rz * log_scales.exp()) ** 2).sum(-1).clamp_min(1e-20).sqrt()
     below = torch.relu(reach * s_z - z)
     return (torch.sigmoid(opacity_logits.reshape(-1)) * below).mean() / unit

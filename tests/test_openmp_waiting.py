@@ -110,7 +110,6 @@ def test_torch_loaded_first_keeps_its_waiting_and_still_gets_one_thread():
 
 _TRAIN = """
 import sys
-import numpy as np
 from train_world.cli import train
 assert train.main([sys.argv[1], "--out", sys.argv[2], "--preset", "quick", "--iterations", "120", "--quiet"]) == 0
 """

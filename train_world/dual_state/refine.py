@@ -35,7 +35,7 @@ from tqdm import tqdm
 from dsg_gym.gaussians import GaussianSet, activate_opacity, activate_scale
 from dsg_gym.world import World, WorldObject
 from train_world.dual_state.losses import support_loss
-from train_world.dual_state.transfer import ObjectTransfer
+from train_world.dual_state.transfer import ObjectTransfer, gaussian_transforms
 from train_world.single_state.field import SegmentedField
 from train_world.single_state.losses import photometric_loss
 
@@ -179,12 +179,9 @@ def refine_world(
     c = config
     n_bg = world.background.num
     object_poses = {  # each object Gaussian's pose at each state (object frame -> table frame)
-        s: torch.from_numpy(
-            np.repeat(
-                np.asarray(world.poses[s], np.float32), [world.objects[i].gaussians.num for i in ids], axis=0
-            )
-        )
+        s: gaussian_transforms(labels[n_bg:], np.asarray(world.poses[s], np.float32).reshape(-1, 4, 4))
         for s in views
+        if c.support_weight > 0
     }
     lrs = {
         "means": c.lr_means,

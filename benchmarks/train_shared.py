@@ -18,8 +18,8 @@ Settings:
 - ``idle``: nothing else runs;
 - ``busy``: beside a process that keeps one core busy (a Python loop), started first, as a data-collection or
   simulation job would;
-- ``training``: beside a second training of the same kind (all cores), started ``--stagger`` seconds earlier
-  and made long enough to outlast the measured one;
+- ``training``: beside a second training of the same kind (all cores), made long enough to outlast the
+  measured one; the measured training starts ``--stagger`` seconds after the other's first step;
 - ``busy_after`` and ``training_after``: the same competitors, started after the measured training has loaded
   and at work before its first timed step, as when a job is started beside a running training.
 

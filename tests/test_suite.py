@@ -80,7 +80,7 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
     md = (out / "table.md").read_text()
     assert "ours: B+C+P" in md and "(a) single-state" in md and "**mean**" in md
     assert (out / "grids" / "two_blocks.png").stat().st_size > 0
-    # rerunning finds every world and trains nothing: same table
+    # rerunning with the same settings finds every world and trains nothing: same table
     before = {m: (wdir / f"{m}.dsgworld").stat().st_mtime_ns for m in runs}
     assert (
         suite_main(
@@ -95,10 +95,18 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
                 "quick",
                 "--iterations",
                 "40",
+                "--support-weight",
+                "0.25",
             ]
         )
         == 0
     )
+    assert {m: (wdir / f"{m}.dsgworld").stat().st_mtime_ns for m in runs} == before
+    # without --support-weight the run would put those worlds in a table of the default weight: refused
+    from train_world.suite.runner import run_suite
+
+    with pytest.raises(ValueError, match=r"trained with --support-weight 0.25, this run asks for 0.0"):
+        run_suite(out, ["two_blocks"], ["BC", "BCP"], preset="quick", iterations=40)
     assert {m: (wdir / f"{m}.dsgworld").stat().st_mtime_ns for m in runs} == before
     # a training killed after its last checkpoint continues from it: nothing is retrained, same world
     for m in ("a", "BCP"):
@@ -174,6 +182,17 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
 
         run_suite(out0, ["two_blocks"], ["BCP"], preset="quick", iterations=40)
     assert (out0 / "table.json").read_bytes() == table_before
+    # the training record holds the joint-phase options; a rerun asking for others is refused the same way
+    assert (info0["pseudo_every"], info0["align_downscale"], info0["support_weight"]) == (2, 1, 0.0)
+    for option, flag in (
+        ({"support_weight": 0.1}, "--support-weight 0.0"),
+        ({"align_downscale": 2}, "--align-downscale 1"),
+    ):
+        with pytest.raises(
+            ValueError, match=rf"two_blocks/BCP: .*trained with {flag}, this run asks for .*use another --out"
+        ):
+            run_suite(out0, ["two_blocks"], ["BCP"], preset="quick", iterations=40, refine_steps=0, **option)
+        assert (out0 / "table.json").read_bytes() == table_before
     with pytest.raises(ValueError, match="refine_steps must be a non-negative integer"):
         from train_world.suite.runner import run_suite
 

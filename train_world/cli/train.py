@@ -45,7 +45,7 @@ from train_world.cli.train_options import (
     camera_options,
 )
 from train_world.complete.shell import with_background_shell
-from train_world.dual_state.config import DualConfig
+from train_world.dual_state.config import JOINT_OPTIONS, DualConfig
 from train_world.dual_state.views import (
     HOLDOUT_WITHOUT_TEST_STATES,
     default_holdout_every,
@@ -463,6 +463,7 @@ def main_two_state(argv: list[str] | None = None) -> int:
         "iterations": trainer.step,
         "joint_from_step": trainer.joint_start,
         "holdout_every": config.base.holdout_every,
+        **{k: getattr(config, k) for k in JOINT_OPTIONS},
         "training_views": [len(trainer.data1), len(trainer.data2)],
         "gaussians": int(world.metadata["num_gaussians"]),
         "field_sizes": dual["field_sizes"],

@@ -9,7 +9,7 @@ from typing import Any
 
 from train_world.single_state.presets import TrainConfig
 
-__all__ = ["BRANCH_OPTIONS", "DualConfig", "joint_start_step", "training_options"]
+__all__ = ["BRANCH_OPTIONS", "JOINT_OPTIONS", "DualConfig", "joint_start_step", "training_options"]
 
 #: options that may differ from a checkpoint branched from (they act in the joint phase only)
 BRANCH_OPTIONS = (
@@ -22,6 +22,9 @@ BRANCH_OPTIONS = (
     "align_downscale",
     "support_weight",
 )
+
+#: joint-phase options that ``dsg-train`` reports in its summary and ``dsg-suite`` checks before it reuses a world
+JOINT_OPTIONS = ("pseudo_every", "align_downscale", "support_weight")
 
 
 def joint_start_step(joint_from: float, iterations: int) -> int:

@@ -6,7 +6,8 @@ ablations B, B+C and B+C+P (``dsg-train`` on both states); each training runs in
 and peak RSS recorded) and is skipped when its world file exists; a training that was killed continues from its
 checkpoint (``WORLD.ckpt``; its ``train_seconds`` count every part, its ``wall_seconds`` the last), so an
 interrupted suite resumes. A world of ours found there that was trained with another two-state schedule (say,
-another ``--refine-steps``) is refused before anything runs, not reused. Every
+another ``--refine-steps``) or other joint-phase options (``--pseudo-every``, ``--align-downscale``,
+``--support-weight``) is refused before anything runs, not reused. Every
 world is evaluated with ``dsg-eval`` on every test state of the capture (objects at the test poses, held-out
 cameras); a method's figure per scene is the mean over its test states.
 
@@ -42,6 +43,15 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from train_world.suite.records import (
+    LEGACY_HOLDOUT,
+    OURS,
+    refuse_mismatched_worlds,
+    row_schedule,
+    two_state_schedule,
+    world_file,
+)
 
 __all__ = ["METHODS", "merge_tables", "run_suite"]
 
@@ -94,33 +104,6 @@ def _provenance() -> dict[str, Any]:
     }
 
 
-def world_file(folder: Path, method: str) -> Path:
-    """The world file of ``method`` in a suite's per-scene folder: ``METHOD.dsgworld``, or an existing
-    ``METHOD.dsgw`` (the extension of older suite runs, reused as it is)."""
-    old = folder / f"{method}.dsgw"
-    new = folder / f"{method}.dsgworld"
-    return old if old.is_file() and not new.is_file() else new
-
-
-def two_state_schedule(preset: str, iterations: int | None, refine_steps: int | None = None) -> list[int]:
-    """[steps, first joint step, refinement steps] of ``dsg-train``'s two-state run with this preset,
-    ``--iterations`` and ``--refine-steps`` (``None``: the preset's)."""
-    from train_world.dual_state.trainer import joint_start_step
-    from train_world.single_state.presets import scaled_preset
-
-    p = scaled_preset(preset, iterations, two_state=True)
-    refine = p.dual_refine_steps if refine_steps is None else int(refine_steps)
-    return [p.iterations, joint_start_step(p.dual_joint_from, p.iterations), refine]
-
-
-_OURS = ("B", "BC", "BCP")
-# what dsg-train did for tables that do not record their schedule: the joint phase from half the steps, and
-# ``default`` trained 3000 two-state steps
-_LEGACY_DEFAULT_STEPS = 3000
-# and every training (baselines too) of such tables held out every 8th view of each state
-_LEGACY_HOLDOUT = 8
-
-
 def _one_value(values: dict[tuple[str, str], Any], what: str) -> Any:
     """The one value that every (scene, method) row of ``values`` has (None when there are no rows); raises
     ``ValueError`` starting with ``what`` and listing which rows have which value when they differ."""
@@ -133,25 +116,6 @@ def _one_value(values: dict[tuple[str, str], Any], what: str) -> Any:
         )
         raise ValueError(f"{what} ({shown}); rerun them or leave some out with --methods")
     return distinct[0] if distinct else None
-
-
-def _row_schedule(row: dict[str, Any], table: dict[str, Any]) -> tuple[int, ...]:
-    """(steps, first joint step, refinement steps) that trained one of ours' rows: from its training record,
-    else the table's (records and tables without ``refine_steps`` had no refinement: 0); () when neither tells."""
-    from train_world.dual_state.trainer import joint_start_step
-
-    train = row.get("train") or {}
-    if "iterations" in train:
-        steps = int(train["iterations"])
-        return (
-            steps,
-            int(train.get("joint_from_step", joint_start_step(0.5, steps))),
-            int(train.get("refine_steps", 0)),
-        )
-    if table.get("two_state_schedule"):
-        return (tuple(table["two_state_schedule"]) + (0,))[:3]
-    steps = table.get("iterations") or (_LEGACY_DEFAULT_STEPS if table.get("preset") == "default" else None)
-    return () if steps is None else (int(steps), joint_start_step(0.5, int(steps)), 0)
 
 
 def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None) -> dict[str, Any]:
@@ -186,9 +150,9 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
             if kept:
                 out["scenes"].setdefault(scene, {}).update(kept)
             for m, r in kept.items():
-                holdouts[(scene, m)] = int((r.get("train") or {}).get("holdout_every", _LEGACY_HOLDOUT))
-                if m in _OURS:
-                    schedules[(scene, m)] = _row_schedule(r, t)
+                holdouts[(scene, m)] = int((r.get("train") or {}).get("holdout_every", LEGACY_HOLDOUT))
+                if m in OURS:
+                    schedules[(scene, m)] = row_schedule(r, t)
     schedule = _one_value(
         schedules,
         "ours' rows were trained with different two-state schedules "
@@ -254,31 +218,6 @@ def _grid_png(
     atomic_write_bytes(out_png, encode_png(_grid(grid)))
 
 
-def _refuse_reused_worlds_of_another_schedule(
-    out: Path, scenes: list[str], methods: list[str], table: dict[str, Any]
-) -> None:
-    """Before anything runs: raises ``ValueError`` when a world of ours that this run would reuse (its file and
-    training record in ``OUT/worlds/<scene>/``) was trained with another two-state schedule than the run's
-    (steps, first joint step, refinement steps), which would silently mix rows of two methods in one table."""
-    want = tuple(table["two_state_schedule"])
-    for scene in scenes:
-        for m in methods:
-            info_path = out / "worlds" / scene / f"{m}.json"
-            if (
-                m not in _OURS
-                or not world_file(out / "worlds" / scene, m).is_file()
-                or not info_path.is_file()
-            ):
-                continue
-            have = _row_schedule({"train": json.loads(info_path.read_text())}, table)
-            if have and have != want:
-                raise ValueError(
-                    f"{scene}/{m}: the world in {info_path.parent} was trained with the two-state schedule "
-                    f"{list(have)} (steps, first joint step, refinement steps), this run asks for {list(want)}; "
-                    "use another --out, or the matching --iterations / --refine-steps"
-                )
-
-
 def run_suite(
     out: str | Path,
     scenes: list[str],
@@ -325,7 +264,7 @@ def run_suite(
         "methods": methods,
         "provenance": _provenance(),
     }
-    _refuse_reused_worlds_of_another_schedule(out, scenes, methods, results)
+    refuse_mismatched_worlds(out, scenes, methods, results)
     for scene in scenes:
         cap = out / "data" / scene
         logs = out / "logs" / scene

@@ -4,11 +4,12 @@ Features (:mod:`.features`, :mod:`.tracks`) give candidate motions three ways: t
 the second state's views (generalized absolute pose, LO-RANSAC), the reverse, and track-to-track 3D
 correspondences (RANSAC on 3-point Kabsch fits, then reweighted least squares). The candidate that explains
 most 2D-3D correspondences is refined with the object's points by bundle adjustment (:mod:`.motion_refine`).
-The visual hulls (:mod:`.silhouettes`) then refine that rotation locally; when the refined fit is clearly
-worse than the best silhouette fit from turns about the table normal, that fit nearest to the features' turn
-about the normal is taken instead (texture still picks among a symmetric shape's equivalent turns). The hulls'
-centroids, which the masks fix to about a millimetre, give the translation. An object without usable features
-(a plain ball) gets its motion from the hulls alone.
+The visual hulls (:mod:`.silhouettes`) then refine that rotation locally. When the refined fit is clearly
+worse than the best of the hull fits from turns about the table normal, a hull fit is taken instead: the one
+that agrees best with the masks (:mod:`.mask_fit`), and among equally good ones the nearest to the features'
+turn about the normal (texture still picks among a symmetric shape's equivalent turns). The hulls' centroids,
+which the masks fix to about a millimetre, give the translation. An object without usable features (a plain
+ball) gets the hull fit that agrees best with its masks, the smallest turn among equally good ones.
 Coordinates are those of the cameras (the reconstruction's frame); float64; deterministic (seeded).
 """
 
@@ -21,10 +22,11 @@ import numpy as np
 from train_world.capture.alignment import umeyama
 from train_world.capture.features import ViewFeatures
 from train_world.capture.loader import ObjectInfo
+from train_world.capture.mask_fit import choose_on_masks
 from train_world.capture.photos import PhotoCaptureError
 from train_world.capture.silhouettes import (
     SilhouetteView,
-    align_hulls,
+    hull_fits,
     object_centre,
     refine_hull_alignment,
     visual_hull,
@@ -336,15 +338,19 @@ def estimate_object_motion(
         T_t = np.eye(4)  # the features' turn about the table normal alone (objects mostly turn on a table)
         T_t[:3, :3] = _twist(T_f[:3, :3], up)
         T_t[:3, 3] = h2.mean(axis=0) - T_t[:3, :3] @ h1.mean(axis=0)
-        T_s, cost, best = align_hulls(h1, h2, step, up, starts=[T_t], prefer=T_t[:3, :3])
+        fits = hull_fits(h1, h2, step, up, starts=[T_t])
         method = "features+silhouettes"
-        if hull_rms > best + HULL_AGREEMENT * step:  # the features' rotation contradicts the silhouettes
-            T, hull_rms, method = T_s, cost, "silhouettes (features disagreed)"
+        if hull_rms > min(c for c, _ in fits) + HULL_AGREEMENT * step:  # features contradict the silhouettes
+            i, _ = choose_on_masks(
+                [f for _, f in fits], (h1, step1), (h2, step2), *silhouettes, obj.id, prefer=T_t[:3, :3]
+            )
+            (hull_rms, T), method = fits[i], "silhouettes (features disagreed)"
     elif fm is not None:
         T, method = fm.transform.copy(), "features"
     elif hull_ok:
-        T, hull_rms, _ = align_hulls(h1, h2, step, up)
-        method = "silhouettes"
+        fits = hull_fits(h1, h2, step, up)
+        i, _ = choose_on_masks([f for _, f in fits], (h1, step1), (h2, step2), *silhouettes, obj.id)
+        (hull_rms, T), method = fits[i], "silhouettes"
     else:
         raise MotionError(
             f"{label}: too few feature matches between the states ({matches}; need {MIN_INLIERS} points seen in "

@@ -3,10 +3,9 @@
 Textureless objects (a plain white ball) give no features to match; their masks still pin them down. For
 one object in one state, :func:`object_centre` intersects the rays through its mask centroids and
 :func:`visual_hull` carves a voxel grid around that centre with every view's mask (a pixel of another object
-does not carve: it may hide this one) and cuts it at the table plane. :func:`align_hulls` finds the rigid
-motion between the hulls of the two states by trimmed ICP from several starting turns about the table normal,
-preferring the turn closest to a given one among equally good fits (by default the smallest: a ball or a plain
-cylinder keeps its orientation); :func:`refine_hull_alignment` refines a given motion locally.
+does not carve: it may hide this one) and cuts it at the table plane. :func:`hull_fits` fits the first
+state's hull to the second's by trimmed ICP from several starting turns about the table normal (the candidates
+:mod:`.mask_fit` chooses from); :func:`refine_hull_alignment` refines a given motion locally.
 Float64 throughout; deterministic.
 """
 
@@ -18,14 +17,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from train_world.capture.alignment import rotation_angle_deg, umeyama
+from train_world.capture.alignment import umeyama
 
 __all__ = [
     "SilhouetteView",
-    "align_hulls",
     "hull_cost",
+    "hull_fits",
     "object_centre",
     "refine_hull_alignment",
+    "surface_voxels",
     "visual_hull",
 ]
 
@@ -36,7 +36,7 @@ CARVE_TOLERANCE = 0.03
 #: fraction of the views that see a voxel in the image that must see the object there (the others may see
 #: another object in front of it)
 MIN_SEEN = 0.5
-#: starting turns (degrees) about the table normal tried by :func:`align_hulls`
+#: starting turns (degrees) about the table normal tried by :func:`hull_fits`
 START_TURNS = tuple(range(0, 360, 30))
 
 
@@ -117,7 +117,7 @@ def visual_hull(
     return X[keep], step
 
 
-def _surface(points: np.ndarray, step: float) -> np.ndarray:
+def surface_voxels(points: np.ndarray, step: float) -> np.ndarray:
     """The voxels of ``points`` with at least one empty 6-neighbour."""
     if len(points) == 0:
         return points
@@ -160,7 +160,7 @@ def _cost(
 
 def hull_cost(src: np.ndarray, dst: np.ndarray, step: float, T: np.ndarray, trim: float = 0.9) -> float:
     """Symmetric trimmed RMS distance between the surfaces of hulls ``dst`` and ``T src``."""
-    a, b = _surface(src, step), _surface(dst, step)
+    a, b = surface_voxels(src, step), surface_voxels(dst, step)
     return _cost(a, b, np.asarray(T, np.float64), cKDTree(a), cKDTree(b), trim)
 
 
@@ -169,28 +169,23 @@ def refine_hull_alignment(
 ) -> tuple[np.ndarray, float]:
     """Trimmed ICP of the hulls' surfaces from ``T`` (a local refinement) and the resulting
     :func:`hull_cost`."""
-    a, b = _surface(src, step), _surface(dst, step)
+    a, b = surface_voxels(src, step), surface_voxels(dst, step)
     ta, tb = cKDTree(a), cKDTree(b)
     T = _icp(a, tb, b, np.asarray(T, np.float64), 40, trim)
     return T, _cost(a, b, T, ta, tb, trim)
 
 
-def align_hulls(
+def hull_fits(
     src: np.ndarray,
     dst: np.ndarray,
     step: float,
     up: np.ndarray,
     starts: list[np.ndarray] | None = None,
-    prefer: np.ndarray | None = None,
     trim: float = 0.9,
-    tie: float = 0.1,
-) -> tuple[np.ndarray, float, float]:
-    """Rigid ``T [4,4]`` with ``dst ~ T src`` for hull voxels ``src [N,3]`` and ``dst [M,3]`` (voxel size
-    ``step``), its :func:`hull_cost` and the best cost found. Starts from every turn of :data:`START_TURNS`
-    about ``up`` through the centroids plus the given ``starts``; among fits within ``tie * step`` of the
-    best, the one whose rotation is closest to ``prefer`` (default: no rotation) wins."""
-    prefer = np.eye(3) if prefer is None else np.asarray(prefer, np.float64)
-    a, b = _surface(src, step), _surface(dst, step)
+) -> list[tuple[float, np.ndarray]]:
+    """``(hull cost, T [4,4])`` of the trimmed ICP fit from every turn of :data:`START_TURNS` about ``up``
+    through the centroids, then from each of ``starts`` (in that order)."""
+    a, b = surface_voxels(src, step), surface_voxels(dst, step)
     ca, cb = src.mean(axis=0), dst.mean(axis=0)
     ta, tb = cKDTree(a), cKDTree(b)
     inits = []
@@ -203,8 +198,5 @@ def align_hulls(
     fits = []
     for T in inits:
         T = _icp(a, tb, b, T, 40, trim)
-        fits.append((_cost(a, b, T, ta, tb, trim), float(rotation_angle_deg(prefer.T @ T[:3, :3])), T))
-    best = min(f[0] for f in fits)
-    close = [f for f in fits if f[0] <= best + tie * step]
-    cost, _, T = min(close, key=lambda f: f[1])
-    return T, cost, best
+        fits.append((_cost(a, b, T, ta, tb, trim), T))
+    return fits

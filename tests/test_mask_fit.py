@@ -94,3 +94,6 @@ def test_equally_good_candidates_go_to_the_preferred_turn():
     assert i == 0 and mask_cost(h1, h2, v1, v2, 1, far) > (1 + MASK_TIE) * mask_cost(
         h1, h2, v1, v2, 1, T_true
     )
+    # no photos to score by: every candidate is as good, the preferred rotation decides
+    i, cost = choose_on_masks([far, T_true], h1, h2, [], [], 1, prefer=T_true[:3, :3])
+    assert i == 1 and cost == float("inf")

@@ -105,8 +105,9 @@ def choose_on_masks(
     a, b = _points(hull1), _points(hull2)
     v1, v2 = _Views(views1, obj), _Views(views2, obj)
     costs = [_cost(a, b, v1, v2, np.asarray(T, np.float64)) for T in candidates]
+    costs = [c if np.isfinite(c) else np.inf for c in costs]  # nothing to score: never better than a score
     best = min(costs)
     prefer = np.eye(3) if prefer is None else np.asarray(prefer, np.float64)
-    close = [i for i, c in enumerate(costs) if c <= best * (1.0 + MASK_TIE)]
+    close = [i for i, c in enumerate(costs) if c <= best * (1.0 + MASK_TIE) or not np.isfinite(best)]
     i = min(close, key=lambda k: (float(rotation_angle_deg(prefer.T @ candidates[k][:3, :3])), k))
     return i, costs[i]

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from ._results import default_out, write_result
-from .photo_worlds import CAPTURE, SYNTH, _run
+from .photo_worlds import CAPTURE, SYNTH, _run, checked_scene_args
 
 TARGETS = {
     "camera_centre_percent_of_radius": 0.5,
@@ -140,8 +140,6 @@ def run(out: Path, scenes: list[str], work: Path | None, seed: int, marker: floa
 
 
 def main(argv: list[str] | None = None) -> int:
-    from train_world.synth.spec import default_scene_names
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
         "--out", type=Path, help="JSON file (default: benchmarks/results/photo_capture/<date>-<commit>.json)"
@@ -155,13 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views", type=int, help="photos per state (default: dsg-synth's)")
     p.add_argument("--photo-noise", type=float, help="dsg-synth --photo-noise SIGMA (grey levels)")
     args = p.parse_args(argv)
-    known = list(default_scene_names())
-    scenes = known if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
-    unknown = [s for s in scenes if s not in known]
-    if unknown or not scenes:
-        p.error(f"--scenes: unknown scene(s) {unknown or args.scenes!r}; choose from {', '.join(known)}")
-    if args.marker < 0 or (args.views is not None and args.views < 1):
-        p.error("--marker must be >= 0 and --views >= 1")
+    scenes = checked_scene_args(p, args)
     synth = (["--views", str(args.views)] if args.views else []) + (
         ["--photo-noise", str(args.photo_noise)] if args.photo_noise else []
     )

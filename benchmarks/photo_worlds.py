@@ -231,9 +231,22 @@ def run(out: Path, scenes: list[str], work: Path | None, synth_args: list[str], 
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
+def checked_scene_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> list[str]:
+    """The scenes ``args.scenes`` names (``all``: every default scene), after checking them, ``--marker`` and
+    ``--views``; ``p.error`` (exit 2) otherwise."""
     from train_world.synth.spec import default_scene_names
 
+    known = list(default_scene_names())
+    scenes = known if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
+    unknown = [s for s in scenes if s not in known]
+    if not scenes or unknown:
+        p.error(f"--scenes: unknown scene(s) {unknown or args.scenes!r}; choose from {', '.join(known)}")
+    if args.marker < 0 or (args.views is not None and args.views < 1):
+        p.error("--marker must be >= 0 and --views >= 1")
+    return scenes
+
+
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m benchmarks.photo_worlds",
         description=__doc__.split("\n")[0],
@@ -273,13 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         help="dsg-train --refine-cameras for the photo world (its cameras refined in training)",
     )
     args = p.parse_args(argv)
-    known = list(default_scene_names())
-    scenes = known if args.scenes == "all" else [s for s in args.scenes.split(",") if s]
-    unknown = [s for s in scenes if s not in known]
-    if not scenes or unknown:
-        p.error(f"--scenes: unknown scene(s) {unknown or args.scenes!r}; choose from {', '.join(known)}")
-    if args.marker < 0 or (args.views is not None and args.views < 1):
-        p.error("--marker must be >= 0 and --views >= 1")
+    scenes = checked_scene_args(p, args)
     synth = ["--seed", str(args.seed)] + (["--views", str(args.views)] if args.views else [])
     train = ["--seed", str(args.seed)] + (["--preset", args.preset] if args.preset else [])
     train += ["--iterations", str(args.iterations)] if args.iterations else []

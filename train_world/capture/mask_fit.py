@@ -45,8 +45,9 @@ class _Views:
             self.outline.append(np.stack([xs, ys], axis=1).astype(np.float64))
 
     def residuals(self, X: np.ndarray) -> np.ndarray:
-        """Pixels outside the objects for each projected point of ``X [N,3]`` (0 behind a camera or outside
-        the photo), then for each outline pixel its distance beyond half a pixel to the nearest projection."""
+        """Pixels outside the objects for each projected point of ``X [N,3]`` (points behind a camera or outside
+        the photo are not scored), then for each outline pixel its distance beyond half a pixel to the nearest
+        projection."""
         Xh = np.concatenate([X, np.ones((len(X), 1))], axis=1)
         out = []
         for P, dist, px in zip(self.P, self.dist, self.outline, strict=True):

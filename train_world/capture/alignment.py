@@ -6,8 +6,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 __all__ = ["apply", "precise_rotation_deg", "rotation_angle_deg", "similarity_matrix", "umeyama"]
@@ -50,15 +48,17 @@ def apply(mat: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(rot: np.ndarray) -> np.ndarray:
-    """Rotation angle in degrees of ``rot [...,3,3]`` (e.g. ``R_a^T R_b`` for the angle between two)."""
+    """Rotation angle in degrees of ``rot [...,3,3]`` (e.g. ``R_a^T R_b`` for the angle between two): ``atan2`` of
+    its sine (from the antisymmetric part) and cosine (from the trace), accurate near 0 and 180 degrees, where an
+    arccos of the trace alone loses half the digits."""
     r = np.asarray(rot, dtype=np.float64)
     c = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+    w = np.stack(
+        [r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], axis=-1
+    )
+    return np.degrees(np.arctan2(0.5 * np.linalg.norm(w, axis=-1), c))
 
 
 def precise_rotation_deg(rot: np.ndarray) -> float:
-    """Angle of one rotation ``rot [3,3]`` in degrees, accurate at small angles too (``atan2`` of its sine and
-    cosine, where :func:`rotation_angle_deg`'s arccos of the trace loses precision near 0)."""
-    r = np.asarray(rot, dtype=np.float64)
-    sin = 0.5 * math.hypot(r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1])
-    return math.degrees(math.atan2(sin, (float(np.trace(r)) - 1.0) / 2.0))
+    """Angle of one rotation ``rot [3,3]`` in degrees as a float (:func:`rotation_angle_deg`)."""
+    return float(rotation_angle_deg(rot))

@@ -48,7 +48,7 @@ demo: $(BASE)
 test: $(TEST)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q --durations=15 tests
 
 bench: $(BENCH)
 	$(PY) -m benchmarks.render --out render.json

@@ -97,3 +97,20 @@ def test_equally_good_candidates_go_to_the_preferred_turn():
     # no photos to score by: every candidate is as good, the preferred rotation decides
     i, cost = choose_on_masks([far, T_true], h1, h2, [], [], 1, prefer=T_true[:3, :3])
     assert i == 1 and cost == float("inf")
+
+
+def test_outline_is_the_objects_edge_and_not_the_photos():
+    from train_world.capture.mask_fit import _Views
+
+    ids = np.zeros((8, 8), np.uint8)
+    ids[2:5, 2:6] = 1  # a 3x4 block inside the photo: its 10 edge pixels are the outline
+    ids[5:, 0:3] = 2  # another object cut by the photo's bottom-left corner
+    v = SilhouetteView(ids, K, np.eye(4))
+    inside = {(int(x), int(y)) for x, y in _Views([v], 1).outline[0]}
+    assert inside == {(x, y) for y in range(2, 5) for x in range(2, 6)} - {(3, 3), (4, 3)}
+    cut = {(int(x), int(y)) for x, y in _Views([v], 2).outline[0]}
+    # only the pixels next to the background are outline; those on the photo's edge alone are not
+    assert cut == {(0, 5), (1, 5), (2, 5), (2, 6), (2, 7)}
+    # the distance map to the nearest object pixel is computed once and shared by every object
+    assert v.object_distance is v.object_distance
+    assert v.object_distance[3, 3] == 0.0 and v.object_distance[0, 0] == np.hypot(2, 2)

@@ -15,7 +15,7 @@ their equivalent turns; texture or the smallest turn decides there). Float64; de
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt, map_coordinates
+from scipy.ndimage import binary_erosion, map_coordinates
 from scipy.spatial import cKDTree
 
 from train_world.capture.alignment import rotation_angle_deg
@@ -35,13 +35,12 @@ class _Views:
 
     def __init__(self, views: list[SilhouetteView], obj: int):
         self.P = [v.K @ v.w2c[:3, :4] for v in views]
-        self.dist = [distance_transform_edt(v.ids == 0) for v in views]
+        self.dist = [v.object_distance for v in views]
         self.outline = []
         for v in views:
             m = v.ids == obj
-            inner = m.copy()
-            inner[1:-1, 1:-1] = m[1:-1, 1:-1] & m[:-2, 1:-1] & m[2:, 1:-1] & m[1:-1, :-2] & m[1:-1, 2:]
-            ys, xs = np.nonzero(m & ~inner)
+            # outline: the object's pixels with a 4-neighbour off it; the photo's edge is not an outline
+            ys, xs = np.nonzero(m & ~binary_erosion(m, border_value=1))
             self.outline.append(np.stack([xs, ys], axis=1).astype(np.float64))
 
     def residuals(self, X: np.ndarray) -> np.ndarray:

@@ -12,8 +12,10 @@ Float64 throughout; deterministic.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -48,6 +50,12 @@ class SilhouetteView:
     ids: np.ndarray
     K: np.ndarray
     w2c: np.ndarray
+
+    @cached_property
+    def object_distance(self) -> np.ndarray:
+        """``[h,w]`` float64: each pixel's distance in pixels to the nearest pixel of any object (0 on the
+        objects); computed once per view."""
+        return distance_transform_edt(self.ids == 0)
 
 
 def _project(v: SilhouetteView, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

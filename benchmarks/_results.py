@@ -2,16 +2,20 @@
 
 The date is today's (local time), the commit the checkout's short ``HEAD`` hash (``nocommit`` outside a git
 checkout or without git). A result is named by what it measured and on which code, so results of one
-benchmark sort by date and each can be traced to its commit.
+benchmark sort by date and each can be traced to its commit. Every result says which machine measured it
+(:func:`machine_info`; :func:`write_result` adds it where a benchmark did not): speeds differ between machines
+by up to 2x, so only figures of one machine compare.
 """
 
 from __future__ import annotations
 
 import datetime
+import os
+import platform
 import subprocess
 from pathlib import Path
 
-__all__ = ["RESULTS", "default_out", "short_commit", "write_result"]
+__all__ = ["RESULTS", "default_out", "machine_info", "short_commit", "write_result"]
 
 REPO = Path(__file__).resolve().parents[1]
 #: the folder of committed results, one subfolder per benchmark
@@ -35,6 +39,26 @@ def short_commit(cwd: Path = REPO) -> str:
     return head if r.returncode == 0 and head else "nocommit"
 
 
+def machine_info(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict:
+    """The measuring machine: ``cpu`` (the processor's model name from ``cpuinfo`` on Linux, else
+    ``platform.processor()``, else ``"unknown"``), ``cpus`` (logical CPUs), ``platform`` and ``python``."""
+    model = ""
+    try:
+        for line in cpuinfo.read_text(errors="replace").splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and value.strip():
+                model = value.strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu": model or platform.processor() or "unknown",
+        "cpus": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+    }
+
+
 def default_out(
     benchmark: str,
     suffix: str = ".json",
@@ -52,9 +76,12 @@ def default_out(
 
 
 def write_result(out: Path, result: dict) -> None:
-    """Write ``result`` as JSON to ``out`` atomically, creating its folder. The writer is imported here, not at
+    """Write ``result`` as JSON to ``out`` atomically, creating its folder, with a ``machine`` entry
+    (:func:`machine_info`) unless it has one. The writer is imported here, not at
     module level: it loads torch, which must not be loaded before a benchmark's measurements."""
     from train_world.capture.format import atomic_write_json
 
+    if "machine" not in result:
+        result = {**result, "machine": machine_info()}
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out, result)

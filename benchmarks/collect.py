@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 from dsg_gym.collect import collect
 from dsg_gym.collect.episodes import collect_episodes
 
-from ._results import default_out
+from ._results import default_out, machine_info
 
 
 def _settings(policy: str, size: int, steps: int, seed: int) -> dict:
@@ -79,11 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out = args.out or str(default_out("collect"))
 
     result: dict = {
-        "machine": {
-            "platform": platform.platform(),
-            "cpus": os.cpu_count(),
-            "python": platform.python_version(),
-        },
+        "machine": machine_info(),
         "config": vars(args),
         "random": [],
         "end_to_end": [],

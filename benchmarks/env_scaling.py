@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import threading
@@ -42,7 +41,7 @@ import numpy as np  # noqa: E402
 
 import dsg_gym  # noqa: E402,F401  registers DSGWorld-v0
 
-from ._results import default_out  # noqa: E402
+from ._results import default_out, machine_info  # noqa: E402
 from .env_step import MujocoRun, _one_object_actions, async_rate  # noqa: E402
 
 TARGETS = {
@@ -284,11 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     if "sizes" in sections:
         sizes, cams = ((64,), (1, 2)) if args.quick else ((64, 128, 256), (1, 2, 4))
         result["sizes"] = sizes_section(steps, repeats, sizes, cams)
-    result["machine"] = {
-        "cpus": os.cpu_count(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-    }
+    result["machine"] = machine_info()
     result["numba"] = {"threading_layer": numba.threading_layer(), "threads": numba.get_num_threads()}
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:

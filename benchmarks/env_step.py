@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -25,7 +24,7 @@ import numpy as np  # noqa: E402
 
 import dsg_gym  # noqa: E402,F401  registers DSGWorld-v0
 
-from ._results import default_out  # noqa: E402
+from ._results import default_out, machine_info  # noqa: E402
 
 TARGET_STEPS = 500.0
 TARGET_RATIO = 3.0
@@ -206,11 +205,7 @@ def main(argv: list[str] | None = None) -> int:
             "met_steps": inc["steps_per_s"] >= TARGET_STEPS,
             "met_ratio": None if ratio is None else ratio >= TARGET_RATIO,
         },
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-        },
+        "machine": machine_info(),
         # the runtime's kernels run on numba's own choice of layer (dsg_gym.splat.threads)
         "numba": {"threading_layer": numba.threading_layer(), "threads": numba.get_num_threads()},
     }

@@ -44,7 +44,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import argparse
 import dataclasses
 import json
-import platform
 import shutil
 import subprocess
 import sys
@@ -56,7 +55,7 @@ import numpy as np
 
 from . import pareto_core as C
 from . import pareto_report as report
-from ._results import default_out
+from ._results import default_out, machine_info
 
 TOLERANCE_DB = 0.1
 REPO = Path(__file__).resolve().parents[1]
@@ -400,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
             "benchmark": "pareto",
             "mode": "quick" if args.quick else "full",
             "git": _git(),
-            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+            "machine": machine_info(),
             "options": {"steps": args.steps, "rounds": args.rounds, "seed": args.seed, "scenes": args.scenes,
                         "tolerance_db": TOLERANCE_DB},
             "default_size": args.size,

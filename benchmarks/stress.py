@@ -28,7 +28,6 @@ import argparse
 import gc
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -66,7 +65,7 @@ from tqdm import tqdm
 from dsg_gym import geometry as G
 from dsg_gym import poses as P
 
-from ._results import default_out
+from ._results import default_out, machine_info
 from .stress_training import training_faults
 
 POSE_TOL = 1e-9
@@ -433,9 +432,7 @@ def main(argv: list[str] | None = None) -> int:
     result["all_passed"] = all(passed.values())
     result["seconds"] = seconds
     result["machine"] = {
-        "cpus": os.cpu_count(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
+        **machine_info(),
         "torch": torch.__version__,
         "numba_threading_layer": os.environ.get("NUMBA_THREADING_LAYER"),
         "load_average": list(os.getloadavg()),

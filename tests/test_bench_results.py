@@ -1,15 +1,17 @@
-"""benchmarks._results: the default output path of every benchmark, by benchmark, date and commit."""
+"""benchmarks._results: the default output path of every benchmark, by benchmark, date and commit, and the
+machine that every result records."""
 
 from __future__ import annotations
 
 import datetime
+import json
 import re
 import subprocess
 from pathlib import Path
 
 import pytest
 
-from benchmarks._results import RESULTS, default_out, short_commit
+from benchmarks._results import RESULTS, default_out, machine_info, short_commit, write_result
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -52,3 +54,17 @@ def test_every_benchmark_with_an_out_option_defaults_to_it():
         text = path.read_text()
         assert re.search(rf'default_out\(\s*"{path.stem}"', text), path.name
         assert not re.search(r'add_argument\(\s*"--out"[^)]*required=True', text), path.name
+
+
+def test_results_say_which_machine_measured_them(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: X\nmodel name\t: Test CPU @ 1.0GHz\n\nprocessor\t: 1\n")
+    m = machine_info(info)
+    assert m["cpu"] == "Test CPU @ 1.0GHz" and m["cpus"] >= 1 and m["python"].count(".") == 2
+    assert machine_info(tmp_path / "missing")["cpu"]  # no cpuinfo: the platform's name or "unknown"
+    write_result(tmp_path / "a" / "r.json", {"x": 1})
+    assert json.loads((tmp_path / "a" / "r.json").read_text())["machine"]["cpus"] == m["cpus"]
+    mine = {"x": 1, "machine": {"cpus": 99}}
+    write_result(tmp_path / "b.json", mine)
+    assert json.loads((tmp_path / "b.json").read_text())["machine"] == {"cpus": 99}
+    assert mine == {"x": 1, "machine": {"cpus": 99}}

@@ -15,7 +15,7 @@ from _captures import tiny_capture
 
 from dsg_gym.cameras import look_at
 from dsg_gym.world import load_world
-from train_world.capture.alignment import precise_rotation_deg
+from train_world.capture.alignment import rotation_angle_deg
 from train_world.cli import train as train_cli
 from train_world.single_state.camera_refine import CameraCorrections, correction_lrs
 from train_world.single_state.field import rigid_transform_gaussians
@@ -76,7 +76,7 @@ def _rot(axis, deg):
 
 def _pose_errors(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per view: the angle (degrees) and camera-centre distance between view matrices ``a`` and ``b``."""
-    ang = np.array([precise_rotation_deg(a[i, :3, :3] @ b[i, :3, :3].T) for i in range(len(a))])
+    ang = rotation_angle_deg(a[:, :3, :3] @ np.swapaxes(b[:, :3, :3], 1, 2))
     c = lambda m: -np.einsum("vji,vj->vi", m[:, :3, :3], m[:, :3, 3])  # noqa: E731
     return ang, np.linalg.norm(c(a) - c(b), axis=1)
 

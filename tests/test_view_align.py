@@ -7,7 +7,7 @@ import pytest
 
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.splat.sh import rgb_to_sh0
-from train_world.capture.alignment import precise_rotation_deg
+from train_world.capture.alignment import rotation_angle_deg
 from train_world.eval.evaluate import render_gaussians
 from train_world.eval.view_align import ViewAlignment, align_view, correction_matrix
 
@@ -60,8 +60,8 @@ def test_a_perturbed_camera_is_brought_back():
     off = correction_matrix([0.004, -0.003, 0.002], [0.002, -0.001, 0.0]) @ true  # ~0.3 deg, 2 mm
     r = align_view(g, off, K, W, H, target, lambda v: _render(g, v))
     assert r.kept and r.mse_after < 0.25 * r.mse_before
-    err_before = precise_rotation_deg(off[:3, :3] @ true[:3, :3].T)
-    err_after = precise_rotation_deg(r.viewmat[:3, :3] @ true[:3, :3].T)
+    err_before = rotation_angle_deg(off[:3, :3] @ true[:3, :3].T)
+    err_after = rotation_angle_deg(r.viewmat[:3, :3] @ true[:3, :3].T)
     assert err_after < 0.4 * err_before
     assert np.all(np.isfinite(r.viewmat)) and r.rotation_deg > 0
     np.testing.assert_allclose(r.viewmat[:3, :3] @ r.viewmat[:3, :3].T, np.eye(3), atol=1e-9)  # rigid

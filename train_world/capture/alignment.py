@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["apply", "precise_rotation_deg", "rotation_angle_deg", "similarity_matrix", "umeyama"]
+__all__ = ["apply", "rotation_angle_deg", "similarity_matrix", "umeyama"]
 
 
 def umeyama(
@@ -57,8 +57,3 @@ def rotation_angle_deg(rot: np.ndarray) -> np.ndarray:
         [r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], axis=-1
     )
     return np.degrees(np.arctan2(0.5 * np.linalg.norm(w, axis=-1), c))
-
-
-def precise_rotation_deg(rot: np.ndarray) -> float:
-    """Angle of one rotation ``rot [3,3]`` in degrees as a float (:func:`rotation_angle_deg`)."""
-    return float(rotation_angle_deg(rot))

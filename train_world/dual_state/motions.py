@@ -32,7 +32,7 @@ from dsg_gym.geometry import (
     quat_to_rotmat,
     rotmat_to_quat,
 )
-from train_world.capture.alignment import precise_rotation_deg
+from train_world.capture.alignment import rotation_angle_deg
 from train_world.dual_state.transfer import ObjectTransfer
 
 __all__ = [
@@ -50,8 +50,8 @@ def motion_error(T: np.ndarray, T_ref: np.ndarray, P1: np.ndarray) -> tuple[np.n
     o = P1[:, :3, 3]
     a = np.einsum("kij,kj->ki", T[:, :3, :3], o) + T[:, :3, 3]
     b = np.einsum("kij,kj->ki", T_ref[:, :3, :3], o) + T_ref[:, :3, 3]
-    ang = [precise_rotation_deg(T[k, :3, :3].T @ T_ref[k, :3, :3]) for k in range(len(T))]
-    return np.linalg.norm(a - b, axis=1), np.asarray(ang, dtype=np.float64)
+    ang = rotation_angle_deg(np.swapaxes(T[:, :3, :3], 1, 2) @ T_ref[:, :3, :3])
+    return np.linalg.norm(a - b, axis=1), ang
 
 
 def motion_correction(

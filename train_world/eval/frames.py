@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from dsg_gym.world import World
-from train_world.capture.alignment import precise_rotation_deg
+from train_world.capture.alignment import rotation_angle_deg
 from train_world.capture.cameras import GL_TO_CV, check_rigid
 from train_world.capture.files import CaptureError, read_json
 from train_world.dual_state.views import ESTIMATING_GENERATORS, view_names
@@ -138,7 +138,7 @@ class FrameAlignment:
     def to_dict(self) -> dict[str, Any]:
         return {
             "scale": self.scale,
-            "rotation_deg": precise_rotation_deg(self.rotation),
+            "rotation_deg": float(rotation_angle_deg(self.rotation)),
             "rotation": self.rotation.tolist(),
             "translation": self.translation.tolist(),
             "cameras": self.cameras,
@@ -245,11 +245,11 @@ def fit_frame_alignment(world: World, truth: str | Path) -> FrameAlignment:
     cg, rg, cw, rw = (np.asarray(x) for x in (cg, rg, cw, rw))
     s, R, t = fit_similarity(cg, rg, cw, rw)
     err = np.linalg.norm(cg @ (s * R).T + t - cw, axis=1) / s
-    rot_err = np.array([precise_rotation_deg(rw[i].T @ R @ rg[i]) for i in range(len(rg))])
+    rot_err = rotation_angle_deg(np.swapaxes(rw, 1, 2) @ R @ rg)
     spread = math.sqrt(float(((cg - cg.mean(0)) ** 2).sum()) / len(cg))
     identity = (
         abs(s - 1.0) <= IDENTITY_TOLERANCE
-        and math.radians(precise_rotation_deg(R)) <= IDENTITY_TOLERANCE
+        and math.radians(float(rotation_angle_deg(R))) <= IDENTITY_TOLERANCE
         and float(np.linalg.norm(t)) <= IDENTITY_TOLERANCE * max(spread, 1e-12)
     )
     if identity:

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from dsg_gym.geometry import axis_angle_to_quat, quat_to_rotmat
-from train_world.capture.alignment import precise_rotation_deg
+from train_world.capture.alignment import rotation_angle_deg
 
 __all__ = ["CORRECTION_LR_FINAL_FACTOR", "CameraCorrections", "correction_lrs"]
 
@@ -124,7 +124,7 @@ class CameraCorrections:
         (scene units, and mm when ``units`` is metres) over the views."""
         new = self.viewmats().numpy()
         base = self.base.numpy()
-        ang = np.array([precise_rotation_deg(new[i, :3, :3] @ base[i, :3, :3].T) for i in range(len(new))])
+        ang = rotation_angle_deg(new[:, :3, :3] @ np.swapaxes(base[:, :3, :3], 1, 2))
         centre = lambda m: -np.einsum("vji,vj->vi", m[:, :3, :3], m[:, :3, 3])  # noqa: E731
         dist = np.linalg.norm(centre(new) - centre(base), axis=1)
         out = {

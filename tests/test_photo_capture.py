@@ -103,6 +103,15 @@ def test_registration_and_report(photos, estimated):
     }
     ball = next(o for o in report["objects"] if o["name"] == "white_ball")
     assert ball["method"] == "silhouettes"  # a plain ball has no features: its masks give the motion
+    assert ball["appearance"] is None  # and no texture for its colours to refine the turn by
+    textured = [o for o in report["objects"] if o["appearance"] is not None]
+    assert {"orange_box", "magenta_prism"} <= {o["name"] for o in textured}
+    for o in textured:
+        a = o["appearance"]
+        assert a["photo_pairs"] > 0 and o["feature_inliers"] > 0
+        assert a["kept"] == o["method"].endswith("+appearance")
+        assert not a["kept"] or a["colour_rms_after"] <= a["colour_rms_before"] + 1e-6
+    assert any(o["appearance"]["kept"] for o in textured)
     assert not any(p.name.startswith(".") for p in out.parent.iterdir())  # no staging or work folders left
 
 

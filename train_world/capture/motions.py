@@ -9,7 +9,9 @@ worse than the best of the hull fits from turns about the table normal, a hull f
 that agrees best with the masks (:mod:`.mask_fit`), and among equally good ones the nearest to the features'
 turn about the normal (texture still picks among a symmetric shape's equivalent turns). The hulls' centroids,
 which the masks fix to about a millimetre, give the translation. An object without usable features (a plain
-ball) gets the hull fit that agrees best with its masks, the smallest turn among equally good ones.
+ball) gets the hull fit that agrees best with its masks, the smallest turn among equally good ones. An object
+with texture (features found) then has its turn refined by its colours (:mod:`.appearance`) when the photos
+are given.
 Coordinates are those of the cameras (the reconstruction's frame); float64; deterministic (seeded).
 """
 
@@ -20,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from train_world.capture.alignment import umeyama
+from train_world.capture.appearance import AppearanceFit, ColourView, refine_motion_by_appearance
 from train_world.capture.features import ViewFeatures
 from train_world.capture.loader import ObjectInfo
 from train_world.capture.mask_fit import choose_on_masks
@@ -267,10 +270,11 @@ def estimate_feature_motion(
 class ObjectMotion:
     """One object's estimate: ``transform [4,4]`` (first state to second), its centre in the first state
     ``centre [3]`` (hull centroid, or the feature points' centroid), ``method`` ("features",
-    "features+silhouettes", "silhouettes (features disagreed)" or "silhouettes"), feature ``matches`` and
-    ``inliers``, feature RMS reprojection
-    error ``rms_px`` (NaN without features), ``views`` seeing the object whole per state and the hulls'
-    alignment RMS under the motion ``hull_rms`` (reconstruction units; NaN without usable hulls)."""
+    "features+silhouettes", "silhouettes (features disagreed)" or "silhouettes"; "+appearance" appended when
+    the colours refined the turn), feature ``matches`` and ``inliers``, feature RMS reprojection
+    error ``rms_px`` (NaN without features), ``views`` seeing the object whole per state, the hulls'
+    alignment RMS under the motion ``hull_rms`` (reconstruction units; NaN without usable hulls) and the
+    ``appearance`` refinement (None when not tried)."""
 
     transform: np.ndarray
     centre: np.ndarray
@@ -280,6 +284,7 @@ class ObjectMotion:
     rms_px: float
     views: tuple[int, int]
     hull_rms: float
+    appearance: AppearanceFit | None = None
 
 
 def _twist(rot: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -310,10 +315,12 @@ def estimate_object_motion(
     plane: tuple[np.ndarray, float],
     max_error_px: float,
     seed: int = 0,
+    colours: tuple[list[ColourView], list[ColourView]] | None = None,
 ) -> ObjectMotion:
     """The motion of ``obj`` (module docstring); ``plane = (normal, offset)`` is the table (hulls are cut
-    below it). Raises :class:`MotionError` naming the object when neither its features nor its silhouettes
-    determine the motion."""
+    below it); ``colours``: both states' photos, for the appearance refinement (skipped without). Raises
+    :class:`MotionError` naming the object when neither its features nor its silhouettes determine the
+    motion."""
     label = f"object {obj.id} ({obj.name!r})"
     hulls = [_hull(silhouettes[s], obj.id, plane) for s in (0, 1)]
     for s, (_, _, n) in enumerate(hulls):
@@ -359,6 +366,11 @@ def estimate_object_motion(
         )
     if hull_ok:  # the hulls' centroids fix the translation best (about a millimetre at 128x128)
         T[:3, 3] = h2.mean(axis=0) - T[:3, :3] @ h1.mean(axis=0)
+    appearance = None
+    if hull_ok and fm is not None and colours is not None:  # texture: colours pin the turn down
+        appearance = refine_motion_by_appearance(T, (h1, step1), (h2, step2), *colours, obj.id)
+        if appearance.accepted:
+            T, method = appearance.transform, method + "+appearance"
     centre = h1.mean(axis=0) if hull_ok else fm.points.mean(axis=0)
     return ObjectMotion(
         transform=T,
@@ -369,4 +381,5 @@ def estimate_object_motion(
         rms_px=float(fm.rms_px) if fm is not None else float("nan"),
         views=(int(n1), int(n2)),
         hull_rms=hull_rms,
+        appearance=appearance,
     )

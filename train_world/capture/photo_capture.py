@@ -29,6 +29,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
+from train_world.capture.appearance import ColourView
 from train_world.capture.cameras import GL_TO_CV
 from train_world.capture.features import ViewFeatures, extract_view_features
 from train_world.capture.format import (
@@ -88,16 +89,22 @@ def _extractor(long_side: int):
         return pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
 
 
-def _silhouette(ids: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> SilhouetteView:
+def _silhouette(
+    rgb: np.ndarray, ids: np.ndarray, K: np.ndarray, w2c: np.ndarray
+) -> tuple[SilhouetteView, ColourView]:
+    """The photo's masks, and the photo with them, at most :data:`SILHOUETTE_SIZE` pixels on the long side
+    (for the objects' motions)."""
     h, w = ids.shape
     s = min(1.0, SILHOUETTE_SIZE / max(h, w))
     if s < 1.0:
         size = (max(1, round(w * s)), max(1, round(h * s)))
         ids = np.asarray(Image.fromarray(ids).resize(size, Image.NEAREST))
+        rgb = np.asarray(Image.fromarray(rgb).resize(size, Image.BOX))
         K = K.copy()
         K[0] *= size[0] / w
         K[1] *= size[1] / h
-    return SilhouetteView(np.ascontiguousarray(ids), K, w2c)
+    ids = np.ascontiguousarray(ids)
+    return SilhouetteView(ids, K, w2c), ColourView(np.ascontiguousarray(rgb), ids, K, w2c)
 
 
 def _write_views(
@@ -107,10 +114,16 @@ def _write_views(
     progress: bool,
     marker: list | None = None,
     marker_id=None,
-) -> tuple[dict[str, Undistorter], dict[str, list[ViewFeatures]], dict[str, list[SilhouetteView]]]:
-    """Undistorted photos and masks into ``stage/<state>/``; object features and silhouettes per state; with a
-    list ``marker``, the views that see the ArUco marker are appended to it (:class:`MarkerObservation`)."""
-    unds, feats, sils = {}, {}, {}
+) -> tuple[
+    dict[str, Undistorter],
+    dict[str, list[ViewFeatures]],
+    dict[str, list[SilhouetteView]],
+    dict[str, list[ColourView]],
+]:
+    """Undistorted photos and masks into ``stage/<state>/``; object features, silhouettes and colours per
+    state; with a list ``marker``, the views that see the ArUco marker are appended to it
+    (:class:`MarkerObservation`)."""
+    unds, feats, sils, colours = {}, {}, {}, {}
     detector = marker_detector() if marker is not None else None
     total = sum(len(sfm.registered[s]) for s in PHOTO_STATES)
     with tqdm(
@@ -120,7 +133,7 @@ def _write_views(
             cam = sfm.cameras[s]
             und = unds[s] = Undistorter.for_camera(cam.model, cam.params, cam.width, cam.height)
             ex = _extractor(max(und.width, und.height))
-            feats[s], sils[s] = [], []
+            feats[s], sils[s], colours[s] = [], [], []
             for v in capture.states[s]:
                 if v.key not in sfm.world_to_camera:
                     continue
@@ -131,13 +144,15 @@ def _write_views(
                 w2c = sfm.world_to_camera[v.key]
                 gray = np.asarray(Image.fromarray(rgb).convert("L"))
                 feats[s].append(extract_view_features(gray, ids, und.K, w2c, ex, FEATURE_SIZE))
-                sils[s].append(_silhouette(ids, und.K, w2c))
+                sil, colour = _silhouette(rgb, ids, und.K, w2c)
+                sils[s].append(sil)
+                colours[s].append(colour)
                 if marker is not None:
                     seen = detect_marker(rgb, marker_id, detector)
                     if seen is not None and (not marker or seen[0] == marker[0].marker_id):
                         marker.append(MarkerObservation(v.key, seen[0], seen[1], und.K, w2c))
                 bar.update(1)
-    return unds, feats, sils
+    return unds, feats, sils, colours
 
 
 def _motion_report(obj, m: ObjectMotion, T_world: np.ndarray, scale: float) -> dict:
@@ -150,6 +165,15 @@ def _motion_report(obj, m: ObjectMotion, T_world: np.ndarray, scale: float) -> d
         "feature_rms_px": None if not np.isfinite(m.rms_px) else round(m.rms_px, 4),
         "hull_alignment_rms": None if not np.isfinite(m.hull_rms) else round(m.hull_rms * scale, 6),
         "views_seen": {"state1": m.views[0], "state2": m.views[1]},
+        "appearance": None
+        if m.appearance is None
+        else {
+            "photo_pairs": m.appearance.pairs,
+            "colour_rms_before": round(m.appearance.rms_before, 5),
+            "colour_rms_after": round(m.appearance.rms_after, 5),
+            "turn_deg": round(m.appearance.turn_deg, 4),
+            "kept": m.appearance.accepted,
+        },
         "rotation_deg": round(
             float(np.degrees(np.arccos(np.clip((np.trace(T_world[:3, :3]) - 1) / 2, -1, 1)))), 4
         ),
@@ -199,7 +223,7 @@ def build_capture(
         t = time.perf_counter()
         marker_obs = [] if marker_size is not None else None
         with quiet_colmap():
-            unds, feats, sils = _write_views(capture, sfm, stage, progress, marker_obs, marker_id)
+            unds, feats, sils, colours = _write_views(capture, sfm, stage, progress, marker_obs, marker_id)
         t_views = time.perf_counter() - t
         centres = np.array([np.linalg.inv(w)[:3, 3] for w in sfm.world_to_camera.values()])
         anchors = [object_centre(sils[s], o.id)[0] for s in PHOTO_STATES for o in capture.objects]
@@ -227,6 +251,7 @@ def build_capture(
                 (plane.normal, plane.offset),
                 tol,
                 seed=o.id,
+                colours=(colours["state1"], colours["state2"]),
             )
         t_motions = time.perf_counter() - t
         obj_centres = np.array([m.centre for m in motions.values()])

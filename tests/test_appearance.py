@@ -1,0 +1,170 @@
+"""train_world.capture.appearance: an object's turn refined by its colours, photo against alike photo.
+
+The photos are ray-cast here: a box with a smooth colour texture on the table (z = 0), lit from the camera,
+seen by two rings of cameras in both states; in the second state it is turned 50 degrees and moved.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from train_world.capture.alignment import rotation_angle_deg
+from train_world.capture.appearance import (
+    AppearanceConfig,
+    ColourView,
+    refine_motion_by_appearance,
+    surface_normals,
+    visible,
+)
+from train_world.capture.silhouettes import SilhouetteView, object_centre, surface_voxels, visual_hull
+
+SIZE = 96
+K = np.array([[110.0, 0.0, SIZE / 2], [0.0, 110.0, SIZE / 2], [0.0, 0.0, 1.0]])
+HALF = np.array([0.04, 0.03, 0.025])  # the box's half extents; it stands on the table
+PLANE = (np.array([0.0, 0.0, 1.0]), 0.0)
+
+
+def _look_at(eye: np.ndarray) -> np.ndarray:
+    f = -eye / np.linalg.norm(eye)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.stack([r, np.cross(f, r), f])
+    w2c[:3, 3] = -w2c[:3, :3] @ eye
+    return w2c
+
+
+def _render(w2c: np.ndarray, pose: np.ndarray, textured: bool = True) -> ColourView:
+    """Ray-cast the box at ``pose`` (object to world; the object frame has the box's centre at z = HALF[2])."""
+    v, u = np.mgrid[0:SIZE, 0:SIZE] + 0.5
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
+    o_world = -w2c[:3, :3].T @ w2c[:3, 3]
+    d_world = d_cam @ w2c[:3, :3]
+    inv = np.linalg.inv(pose)
+    o = inv[:3, :3] @ o_world + inv[:3, 3] - [0.0, 0.0, HALF[2]]
+    d = d_world @ inv[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (-HALF - o) / d, (HALF - o) / d
+    tn, tf = np.minimum(t1, t2).max(axis=1), np.maximum(t1, t2).min(axis=1)
+    hit = (tn <= tf) & (tf > 0)
+    p = o + np.where(hit, tn, 0.0)[:, None] * d
+    face = np.argmax(np.abs(p) / HALF, axis=1)
+    n = np.zeros_like(p)
+    n[np.arange(len(p)), face] = np.sign(p[np.arange(len(p)), face])
+    dn = d / np.linalg.norm(d, axis=1, keepdims=True)
+    shade = 0.35 + 0.65 * np.clip(-np.sum(n * dn, axis=1), 0.0, 1.0)
+    if textured:
+        q = p / 0.012
+        tex = 0.5 + 0.35 * np.stack(
+            [np.sin(q[:, 0] + 2 * q[:, 1]), np.sin(1.5 * q[:, 1] - q[:, 2]), np.sin(q[:, 2] + 0.7 * q[:, 0])], 1
+        )
+    else:
+        tex = np.full_like(p, 0.6)
+    rgb = np.where(hit[:, None], tex * shade[:, None], 0.45)
+    ids = hit.astype(np.uint8)
+    return ColourView(
+        (255 * rgb).round().astype(np.uint8).reshape(SIZE, SIZE, 3), ids.reshape(SIZE, SIZE), K, w2c
+    )
+
+
+def _cameras() -> list[np.ndarray]:
+    out = []
+    for elev, n, off in ((30.0, 12, 0.0), (55.0, 12, 15.0)):
+        for k in range(n):
+            a, e = np.radians(off + 360.0 * k / n), np.radians(elev)
+            out.append(_look_at(0.4 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])))
+    return out
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Both states' photos, hulls and the true motion."""
+    P1 = np.eye(4)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 50.0, degrees=True).as_matrix()
+    T[:3, 3] = [0.03, -0.02, 0.0]
+    cams = _cameras()
+    views = [[_render(c, P) for c in cams] for P in (P1, T @ P1)]
+    hulls = []
+    for vs in views:
+        sil = [SilhouetteView(v.ids, v.K, v.w2c) for v in vs]
+        centre, radius, _ = object_centre(sil, 1)
+        hulls.append(visual_hull(sil, 1, centre, radius, PLANE))
+    return views, hulls, T
+
+
+def _perturbed(T: np.ndarray, hull: np.ndarray, deg: tuple[float, float, float]) -> np.ndarray:
+    """``T`` turned by ``deg`` (xyz Euler, degrees) about where it puts the hull's centre."""
+    c = T[:3, :3] @ hull.mean(axis=0) + T[:3, 3]
+    R = Rotation.from_euler("xyz", deg, degrees=True).as_matrix()
+    out = np.eye(4)
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = R @ (T[:3, 3] - c) + c
+    return out
+
+
+def _error_deg(T: np.ndarray, T_true: np.ndarray) -> float:
+    return float(rotation_angle_deg(T[:3, :3].T @ T_true[:3, :3]))
+
+
+def test_a_few_degrees_off_is_brought_back(scene):
+    views, hulls, T_true = scene
+    start = _perturbed(T_true, hulls[0][0], (3.0, -2.0, 3.0))
+    assert _error_deg(start, T_true) > 4.0
+    fit = refine_motion_by_appearance(start, hulls[0], hulls[1], views[0], views[1], 1)
+    assert fit.accepted and fit.pairs >= 24
+    assert _error_deg(fit.transform, T_true) < 0.7, _error_deg(fit.transform, T_true)
+    assert fit.rms_after < fit.rms_before
+    # the turn is about the hull's centre carried by the start: that centre stays where the start put it
+    c = hulls[0][0].mean(axis=0)
+    assert np.allclose(fit.transform[:3, :3] @ c + fit.transform[:3, 3], start[:3, :3] @ c + start[:3, 3])
+    assert np.isclose(np.linalg.det(fit.transform[:3, :3]), 1.0) and np.isfinite(fit.transform).all()
+
+
+def test_deterministic(scene):
+    views, hulls, T_true = scene
+    start = _perturbed(T_true, hulls[0][0], (0.0, 2.0, -2.0))
+    a = refine_motion_by_appearance(start, hulls[0], hulls[1], views[0], views[1], 1)
+    b = refine_motion_by_appearance(start, hulls[0], hulls[1], views[0], views[1], 1)
+    assert np.array_equal(a.transform, b.transform)
+
+
+def test_a_larger_turn_than_allowed_keeps_the_start(scene):
+    views, hulls, T_true = scene
+    start = _perturbed(T_true, hulls[0][0], (0.0, 0.0, 4.0))
+    fit = refine_motion_by_appearance(
+        start, hulls[0], hulls[1], views[0], views[1], 1, AppearanceConfig(max_turn_deg=1.0)
+    )
+    assert not fit.accepted and fit.turn_deg > 1.0
+    assert np.array_equal(fit.transform, start)
+
+
+def test_no_photo_pair_sees_the_object(scene):
+    views, hulls, T_true = scene
+    empty = [ColourView(v.rgb, np.zeros_like(v.ids), v.K, v.w2c) for v in views[1]]
+    fit = refine_motion_by_appearance(T_true, hulls[0], hulls[1], views[0], empty, 1)
+    assert not fit.accepted and fit.pairs == 0 and np.array_equal(fit.transform, T_true)
+    fit = refine_motion_by_appearance(T_true, hulls[0], hulls[1], views[0], [], 1)
+    assert not fit.accepted and np.array_equal(fit.transform, T_true)
+
+
+def test_visible_points_face_the_camera_and_are_not_hidden(scene):
+    views, hulls, _ = scene
+    pts, step = hulls[0]
+    X = surface_voxels(pts, step)
+    N = surface_normals(X, pts, step)
+    # the normals point away from the box's centre
+    assert np.mean(np.sum(N * (X - pts.mean(axis=0)), axis=1) > 0) > 0.95
+    v = views[0][0]
+    seen = visible(v, 1, X, N, step)
+    assert 0.1 < seen.mean() < 0.6
+    assert np.all(np.sum(N[seen] * (v.centre - X[seen]), axis=1) > 0)
+    # the same points 5 cm farther along their rays land on the same pixels, behind the box: hidden
+    ray = (X - v.centre) / np.linalg.norm(X - v.centre, axis=1, keepdims=True)
+    both = visible(v, 1, np.concatenate([X, X + 0.05 * ray]), np.concatenate([N, N]), step)
+    assert np.array_equal(both[: len(X)], seen) and not both[len(X) :][seen].any()
+    # a photo that shows another object there sees none of it
+    other = ColourView(v.rgb, np.where(v.ids == 1, 2, 0).astype(np.uint8), v.K, v.w2c)
+    assert not visible(other, 1, X, N, step).any()

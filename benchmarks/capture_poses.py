@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import tempfile
 from pathlib import Path
 
-from ._results import default_out
+from ._results import default_out, write_result
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,8 +37,7 @@ def main(argv: list[str] | None = None) -> int:
         est = estimate_state_poses(cap, "state1", Path(tmp) / "work", features=args.features)
         result = {"benchmark": "capture_poses", "capture": args.llff.name, "factor": args.factor,
                   "features": args.features, **compare_poses(est)}  # fmt: skip
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    Path(out).write_text(json.dumps(result, indent=2) + "\n")
+    write_result(Path(out), result)
     print(json.dumps(result, indent=2))
     return 0
 

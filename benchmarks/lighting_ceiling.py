@@ -27,7 +27,7 @@ import numpy as np
 from dsg_gym.poses import pose7_to_matrix
 from train_world.eval.metrics import psnr_from_mse
 
-from ._results import default_out
+from ._results import default_out, write_result
 
 __all__ = ["lighting_ceiling", "main"]
 
@@ -143,9 +143,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"image {r['image_psnr']:6.2f} dB",
                     file=sys.stderr,
                 )
-    from train_world.capture.format import atomic_write_json
-
-    atomic_write_json(args.out, {"benchmark": "lighting_ceiling", "rows": rows})
+    write_result(Path(args.out), {"benchmark": "lighting_ceiling", "rows": rows})
     return 0
 
 

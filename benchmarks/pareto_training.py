@@ -27,7 +27,7 @@ from pathlib import Path
 
 import train_world  # noqa: F401  (how torch's and numba's OpenMP pools wait, chosen before torch loads)
 
-from ._results import default_out
+from ._results import default_out, write_result
 
 PRESET_NAMES = ("quick", "default", "paper")
 
@@ -162,7 +162,6 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     args.out = args.out or default_out("pareto_training")
-    from train_world.capture.format import atomic_write_json
 
     presets = [s for s in args.presets.split(",") if s]
     bad = [s for s in presets if s not in PRESET_NAMES]
@@ -199,8 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         "note": "novel-state PSNR on every test state's views (MuJoCo ground truth, area-downsampled), "
         "rendered by the env's renderer with default settings; time = training steps only",
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(args.out, result)
+    write_result(Path(args.out), result)
     return 0
 
 

@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks._results import default_out
+from benchmarks._results import default_out, write_result
 
 SIZES = (128, 256)
 COUNTS = (5_000, 20_000, 100_000)
@@ -163,10 +163,9 @@ def main(argv: list[str] | None = None) -> int:
             r["speedup_vs_torch_forward_backward"] = round(
                 ref["forward_backward_ms"] / r["forward_backward_ms"], 2
             )
-    result = records
-    from dsg_gym.io.atomic import atomic_write_bytes
-
-    atomic_write_bytes(args.out, json.dumps(result, indent=1).encode())
+    config = {"sizes": list(SIZES), "counts": list(COUNTS), "repeats": repeats, "quick": bool(args.quick),
+              "threading_layer": args.threading_layer}  # fmt: skip
+    write_result(Path(args.out), {"benchmark": "render", "config": config, "records": records})
     print(f"wrote {args.out}")
     return 0
 

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from train_world.capture.alignment import rotation_angle_deg
 from train_world.capture.appearance import (
     AppearanceConfig,
+    AppearanceFit,
     ColourView,
     refine_motion_by_appearance,
     surface_normals,
@@ -168,3 +169,26 @@ def test_visible_points_face_the_camera_and_are_not_hidden(scene):
     # a photo that shows another object there sees none of it
     other = ColourView(v.rgb, np.where(v.ids == 1, 2, 0).astype(np.uint8), v.K, v.w2c)
     assert not visible(other, 1, X, N, step).any()
+
+
+def test_the_report_of_an_object_no_photo_pair_sees_is_valid_json():
+    """An object turned so far that no photo of one state sees it from the side a photo of the other does
+    (a capsule stood on end): the fit has no colour RMS, and the report says null, not NaN."""
+    import json
+
+    from train_world.capture.format import json_text
+    from train_world.capture.loader import ObjectInfo
+    from train_world.capture.motions import ObjectMotion
+    from train_world.capture.photo_capture import _motion_report
+
+    fit = AppearanceFit(np.eye(4), 0, float("nan"), float("nan"), 0.0, False)
+    m = ObjectMotion(np.eye(4), np.zeros(3), "features+silhouettes", 40, 12, 0.3, (20, 20), 0.01, fit)
+    report = json.loads(json_text(_motion_report(ObjectInfo(1, "capsule"), m, np.eye(4), 1.0)))
+    assert report["appearance"] == {
+        "photo_pairs": 0,
+        "colour_rms_before": None,
+        "colour_rms_after": None,
+        "turn_deg": 0.0,
+        "kept": False,
+    }
+    assert report["method"] == "features+silhouettes"

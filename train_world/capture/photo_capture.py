@@ -155,6 +155,11 @@ def _write_views(
     return unds, feats, sils, colours
 
 
+def _finite(x: float, digits: int) -> float | None:
+    """``x`` rounded, or None (JSON null) when it is not a finite number."""
+    return round(float(x), digits) if np.isfinite(x) else None
+
+
 def _motion_report(obj, m: ObjectMotion, T_world: np.ndarray, scale: float) -> dict:
     return {
         "id": obj.id,
@@ -162,16 +167,16 @@ def _motion_report(obj, m: ObjectMotion, T_world: np.ndarray, scale: float) -> d
         "method": m.method,
         "feature_matches": m.matches,
         "feature_inliers": m.inliers,
-        "feature_rms_px": None if not np.isfinite(m.rms_px) else round(m.rms_px, 4),
-        "hull_alignment_rms": None if not np.isfinite(m.hull_rms) else round(m.hull_rms * scale, 6),
+        "feature_rms_px": _finite(m.rms_px, 4),
+        "hull_alignment_rms": _finite(m.hull_rms * scale, 6),
         "views_seen": {"state1": m.views[0], "state2": m.views[1]},
         "appearance": None
         if m.appearance is None
         else {
             "photo_pairs": m.appearance.pairs,
-            "colour_rms_before": round(m.appearance.rms_before, 5),
-            "colour_rms_after": round(m.appearance.rms_after, 5),
-            "turn_deg": round(m.appearance.turn_deg, 4),
+            "colour_rms_before": _finite(m.appearance.rms_before, 5),
+            "colour_rms_after": _finite(m.appearance.rms_after, 5),
+            "turn_deg": _finite(m.appearance.turn_deg, 4),
             "kept": m.appearance.accepted,
         },
         "rotation_deg": round(

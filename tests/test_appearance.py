@@ -172,8 +172,8 @@ def test_visible_points_face_the_camera_and_are_not_hidden(scene):
 
 
 def test_the_report_of_an_object_no_photo_pair_sees_is_valid_json():
-    """An object turned so far that no photo of one state sees it from the side a photo of the other does
-    (a capsule stood on end): the fit has no colour RMS, and the report says null, not NaN."""
+    """An object that no photo of one state sees from the side a photo of the other state does (one turned onto
+    another face): the fit has no colour RMS, and the report says null there, not NaN."""
     import json
 
     from train_world.capture.format import json_text

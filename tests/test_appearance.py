@@ -192,3 +192,28 @@ def test_the_report_of_an_object_no_photo_pair_sees_is_valid_json():
         "kept": False,
     }
     assert report["method"] == "features+silhouettes"
+
+
+def test_large_photos_give_the_same_turn(scene):
+    """The same photos inside a photo four times the size (the object off centre): only the object's window is
+    used, so the refinement lands where it does on the small photos."""
+    views, hulls, T_true = scene
+
+    def enlarge(v: ColourView) -> ColourView:
+        H = 4 * SIZE
+        rgb = np.full((H, H, 3), 115, np.uint8)
+        ids = np.zeros((H, H), np.uint8)
+        rgb[50 : 50 + SIZE, 200 : 200 + SIZE], ids[50 : 50 + SIZE, 200 : 200 + SIZE] = v.rgb, v.ids
+        K = v.K.copy()
+        K[0, 2] += 200
+        K[1, 2] += 50
+        return ColourView(rgb, ids, K, v.w2c)
+
+    start = _perturbed(T_true, hulls[0][0], (2.0, 0.0, -3.0))
+    small = refine_motion_by_appearance(start, hulls[0], hulls[1], views[0], views[1], 1)
+    big = refine_motion_by_appearance(
+        start, hulls[0], hulls[1], [enlarge(v) for v in views[0]], [enlarge(v) for v in views[1]], 1
+    )
+    assert small.accepted and big.accepted
+    assert float(rotation_angle_deg(small.transform[:3, :3].T @ big.transform[:3, :3])) < 0.05
+    assert _error_deg(big.transform, T_true) < 0.7

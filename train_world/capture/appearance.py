@@ -179,6 +179,32 @@ class _Terms:
         return (_sample(self.imgs_b, self.h, self.vb, p[:, :2] / z - 0.5) - self.ref).ravel()
 
 
+def _cropped(views: list[ColourView], obj: int, blurs: tuple[float, ...]) -> list[ColourView]:
+    """The photos cut to one window size around object ``obj`` (its largest bounding box in any photo, plus a
+    margin of a quarter of it and three times the largest blur), intrinsics shifted to match: what the object
+    needs of large photos, without holding them whole for every blur level."""
+    boxes = []
+    for v in views:
+        ys, xs = np.nonzero(v.ids == obj)
+        boxes.append((ys.min(), ys.max() + 1, xs.min(), xs.max() + 1) if len(xs) else None)
+    sizes = np.array([(b[1] - b[0], b[3] - b[2]) for b in boxes if b is not None]).reshape(-1, 2)
+    h, w = views[0].ids.shape
+    if len(sizes) == 0:
+        return views
+    pad = int(np.ceil(3 * max(blurs, default=0.0))) + 2
+    ch = min(h, int(sizes[:, 0].max() * 1.5) + 2 * pad)
+    cw = min(w, int(sizes[:, 1].max() * 1.5) + 2 * pad)
+    out = []
+    for v, b in zip(views, boxes, strict=True):
+        cy, cx = ((b[0] + b[1]) // 2, (b[2] + b[3]) // 2) if b is not None else (h // 2, w // 2)
+        y0, x0 = int(np.clip(cy - ch // 2, 0, h - ch)), int(np.clip(cx - cw // 2, 0, w - cw))
+        K = v.K.copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        out.append(ColourView(v.rgb[y0 : y0 + ch, x0 : x0 + cw], v.ids[y0 : y0 + ch, x0 : x0 + cw], K, v.w2c))
+    return out
+
+
 def _stacked(rgb: np.ndarray, blur: float) -> np.ndarray:
     """Photos ``rgb [V,h,w,3]`` blurred by ``blur`` px, as ``[3, V*h, w]`` (one plane per channel, the photos
     one below the other) for :func:`_sample`."""
@@ -236,6 +262,7 @@ def refine_motion_by_appearance(
         return none
     N1, N2 = surface_normals(X1, h1, s1), surface_normals(X2, h2, s2)
     c1, c2 = h1.mean(axis=0), h2.mean(axis=0)
+    views1, views2 = _cropped(views1, obj, cfg.blurs), _cropped(views2, obj, cfg.blurs)
     rgb1 = np.stack([v.rgb for v in views1]).astype(np.float32) / 255.0
     rgb2 = np.stack([v.rgb for v in views2]).astype(np.float32) / 255.0
     pivot = T0[:3, :3] @ c1 + T0[:3, 3]

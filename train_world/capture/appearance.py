@@ -3,8 +3,9 @@
 Features and silhouettes place a small object to about a degree at 128 px; its colours hold more. Under the
 true motion, a photo of the second state and the photo of the first state taken from the same side of the
 object (the same direction from the object's centre, in the object's own frame) see the same surface points at
-the same shading: the light that dominates a capture moves with the camera (a phone's flash, an overcast room
-or ``dsg-synth``'s camera light), so what differs is only where the object is. :func:`refine_motion_by_appearance`
+the same shading when the light that dominates the capture moves with the camera (a phone's flash,
+``dsg-synth``'s camera light) or comes from everywhere (an overcast room), so what differs is only where the
+object is. :func:`refine_motion_by_appearance`
 pairs the photos that way and minimises, over the object's turn, the colour differences at the points of each
 state's visual hull that both photos of a pair see (:func:`visible`: in front, on the object's mask, not hidden
 by the hull itself), from blurred photos to sharp ones (a robust loss; a weak pull towards the starting turn
@@ -28,7 +29,14 @@ from scipy.spatial.transform import Rotation
 
 from train_world.capture.silhouettes import surface_voxels
 
-__all__ = ["AppearanceConfig", "AppearanceFit", "ColourView", "refine_motion_by_appearance", "visible"]
+__all__ = [
+    "AppearanceConfig",
+    "AppearanceFit",
+    "ColourView",
+    "refine_motion_by_appearance",
+    "surface_normals",
+    "visible",
+]
 
 
 @dataclass(frozen=True)

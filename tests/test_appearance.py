@@ -59,7 +59,8 @@ def _render(w2c: np.ndarray, pose: np.ndarray, textured: bool = True) -> ColourV
     if textured:
         q = p / 0.012
         tex = 0.5 + 0.35 * np.stack(
-            [np.sin(q[:, 0] + 2 * q[:, 1]), np.sin(1.5 * q[:, 1] - q[:, 2]), np.sin(q[:, 2] + 0.7 * q[:, 0])], 1
+            [np.sin(q[:, 0] + 2 * q[:, 1]), np.sin(1.5 * q[:, 1] - q[:, 2]), np.sin(q[:, 2] + 0.7 * q[:, 0])],
+            1,
         )
     else:
         tex = np.full_like(p, 0.6)

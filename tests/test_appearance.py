@@ -19,7 +19,13 @@ from train_world.capture.appearance import (
     surface_normals,
     visible,
 )
-from train_world.capture.silhouettes import SilhouetteView, object_centre, surface_voxels, visual_hull
+from train_world.capture.silhouettes import (
+    SilhouetteView,
+    object_centre,
+    surface_voxels,
+    symmetric_fits,
+    visual_hull,
+)
 
 SIZE = 96
 K = np.array([[110.0, 0.0, SIZE / 2], [0.0, 110.0, SIZE / 2], [0.0, 0.0, 1.0]])
@@ -191,6 +197,8 @@ def test_the_report_of_an_object_no_photo_pair_sees_is_valid_json():
         "colour_rms_after": None,
         "turn_deg": 0.0,
         "kept": False,
+        "symmetric_candidates": 0,
+        "chosen_turn_deg": 0.0,
     }
     assert report["method"] == "features+silhouettes"
 
@@ -218,3 +226,45 @@ def test_large_photos_give_the_same_turn(scene):
     assert small.accepted and big.accepted
     assert float(rotation_angle_deg(small.transform[:3, :3].T @ big.transform[:3, :3])) < 0.05
     assert _error_deg(big.transform, T_true) < 0.7
+
+
+def _half_turned(T: np.ndarray, hull: np.ndarray) -> np.ndarray:
+    """``T`` after half a turn about the vertical through the first state's hull centre: the box's shape looks
+    the same, its texture does not."""
+    c = hull.mean(axis=0)
+    S = np.eye(4)
+    S[:3, :3] = Rotation.from_euler("z", 180.0, degrees=True).as_matrix()
+    S[:3, 3] = c - S[:3, :3] @ c
+    return T @ S
+
+
+def test_the_hulls_equal_turns_of_a_box_are_its_half_turns(scene):
+    _, hulls, T_true = scene
+    (h1, s1), (h2, s2) = hulls
+    fits = symmetric_fits(h1, h2, max(s1, s2), T_true, PLANE[0])
+    errs = sorted(_error_deg(F, T_true) for F in fits)
+    # the motion itself, and half a turn about the vertical (upside down is a half turn, too): nothing between
+    assert errs[0] < 2.0 and max(errs) > 175.0, errs
+    assert all(e < 3.0 or e > 177.0 for e in errs), errs
+    assert all(
+        np.array_equal(a, b) for a, b in zip(fits, symmetric_fits(h1, h2, max(s1, s2), T_true, PLANE[0]))
+    )
+
+
+def test_colours_choose_among_the_shapes_equal_turns(scene):
+    """Started half a turn off (the hulls cannot tell), the refinement alone stays there; given the shape's
+    equal turns, it starts from the one whose colours agree and lands on the true motion."""
+    views, hulls, T_true = scene
+    (h1, s1), (h2, s2) = hulls
+    start = _perturbed(_half_turned(T_true, h1), h1, (0.0, 0.0, 3.0))
+    alone = refine_motion_by_appearance(start, hulls[0], hulls[1], views[0], views[1], 1)
+    assert (
+        _error_deg(alone.transform, T_true) > 170.0 and alone.candidates == 0 and alone.chosen_turn_deg == 0.0
+    )
+    equals = symmetric_fits(h1, h2, max(s1, s2), start, PLANE[0])
+    fit = refine_motion_by_appearance(start, hulls[0], hulls[1], views[0], views[1], 1, candidates=equals)
+    assert fit.accepted and fit.candidates == len(equals) and fit.chosen_turn_deg > 170.0
+    assert _error_deg(fit.transform, T_true) < 0.7, _error_deg(fit.transform, T_true)
+    assert fit.rms_after < fit.rms_before
+    c = h1.mean(axis=0)  # the centre stays where the start put it
+    assert np.allclose(fit.transform[:3, :3] @ c + fit.transform[:3, 3], start[:3, :3] @ c + start[:3, 3])

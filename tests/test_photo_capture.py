@@ -23,7 +23,7 @@ from PIL import Image  # noqa: E402
 pytest.importorskip("pycolmap", reason="dsg-capture needs pycolmap (pip install pycolmap==4.2.1)")
 
 from train_world.capture import load_capture  # noqa: E402
-from train_world.capture.compare import compare_captures, shape_symmetries  # noqa: E402
+from train_world.capture.compare import compare_captures, shape_symmetries, texture_symmetries  # noqa: E402
 from train_world.capture.frame import Plane, table_frame  # noqa: E402
 from train_world.capture.motions import MotionError, estimate_object_motion, fit_rigid_ransac  # noqa: E402
 from train_world.capture.photo_capture import build_capture  # noqa: E402
@@ -110,6 +110,9 @@ def test_registration_and_report(photos, estimated):
         a = o["appearance"]
         assert a["photo_pairs"] > 0 and o["feature_inliers"] > 0
         assert a["kept"] == o["method"].endswith("+appearance")
+        assert (
+            a["symmetric_candidates"] >= 1
+        )  # a box's, a cylinder's, a prism's equal turns, for colours to choose
         assert not a["kept"] or a["colour_rms_after"] <= a["colour_rms_before"] + 1e-6
     assert any(o["appearance"]["kept"] for o in textured)
     assert not any(p.name.startswith(".") for p in out.parent.iterdir())  # no staging or work folders left
@@ -130,6 +133,8 @@ def test_capture_loads_and_matches_ground_truth(photos, estimated):
     for o in r["objects"]:
         assert o["position_error"] < OBJECT_POS_TOL_M, o
         assert o["rotation_error_mod_symmetry_deg"] < OBJECT_ROT_TOL_DEG, o
+        # a patterned cylinder's or prism's turn counts, modulo only what keeps its cube-mapped pattern
+        assert o["rotation_error_mod_texture_deg"] < OBJECT_ROT_TOL_DEG, o
     # the frame: +z up and the table top at z = 0, as in the ground truth
     assert r["up_axis_error_deg"] < 0.5 and abs(r["table_top_error"]) < 0.006
     z = np.array([p[2, 3] for p in cap.poses["state1"]])
@@ -272,6 +277,32 @@ def test_undistorter_is_identity_without_distortion():
     assert np.array_equal(und.rgb(img), img) and np.array_equal(und.ids(img[..., 0]), img[..., 0])
     barrel = Undistorter.for_camera("SIMPLE_RADIAL", (100.0, 32.0, 24.0, -0.05), 64, 48)
     assert barrel.src_x.min() >= 0.5 - 1e-6 and barrel.src_x.max() <= 63.5 + 1e-6  # no blank pixels
+
+
+def test_texture_symmetries():
+    ball = {"type": "sphere", "radius": 1}
+    assert texture_symmetries(ball, None) == "all" and len(texture_symmetries(ball, "dots")) == 24
+    assert len(texture_symmetries({"type": "cylinder", "radius": 1, "height": 2}, "stripes")) == 8
+    assert len(texture_symmetries({"type": "mesh", "mesh": "prism", "sides": 6}, "checker")) == 4
+    assert len(texture_symmetries({"type": "mesh", "mesh": "prism", "sides": 8}, "checker")) == 8
+    assert len(texture_symmetries({"type": "mesh", "mesh": "frustum", "sides": 7}, "dots")) == 1
+    assert len(texture_symmetries({"type": "box", "extents": [1, 1, 3]}, "dots")) == 8
+    for m in texture_symmetries({"type": "mesh", "mesh": "prism", "sides": 6}, "dots"):
+        assert np.allclose(m @ m.T, np.eye(3)) and np.isclose(np.linalg.det(m), 1.0)
+        assert np.allclose(np.abs(m).sum(axis=0), 1.0)  # a quarter-turn rotation: one +-1 per column
+    # a dotted ball turned 90 deg about z looks the same, turned 45 deg it does not
+    from scipy.spatial.transform import Rotation
+
+    from train_world.capture.compare import motion_error
+
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("z", 45.0, degrees=True).as_matrix()
+    e = motion_error(turn, np.eye(4), np.eye(4), ball, "dots")
+    assert (
+        e["rotation_error_mod_symmetry_deg"] == 0.0 and abs(e["rotation_error_mod_texture_deg"] - 45.0) < 1e-6
+    )
+    turn[:3, :3] = Rotation.from_euler("z", 90.0, degrees=True).as_matrix()
+    assert motion_error(turn, np.eye(4), np.eye(4), ball, "dots")["rotation_error_mod_texture_deg"] < 1e-6
 
 
 def test_shape_symmetries():

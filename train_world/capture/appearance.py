@@ -14,6 +14,10 @@ surface still lands on the same surface point in both photos of a pair, because 
 the same direction. On a plain object the colours are shading alone, which shifts between two photos a few
 degrees apart; ``dsg-capture`` therefore refines only objects with texture (:mod:`.motions`).
 
+A symmetric shape (a ball, a cylinder, a prism) fits its hulls equally well at many turns, and features may
+pick the wrong one; its pattern does not. Given the turns its shape cannot tell apart
+(:func:`.silhouettes.symmetric_fits`), the refinement first starts from the one whose colours agree best.
+
 Coordinates are the cameras' (OpenCV world-to-camera ``w2c``); float64 geometry; deterministic.
 """
 
@@ -72,6 +76,7 @@ class AppearanceConfig:
     prior: float = 0.02
     min_points: int = 20
     max_turn_deg: float = 10.0
+    choice_blur: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -79,7 +84,8 @@ class AppearanceFit:
     """``transform [4,4]`` (first state to second), photo ``pairs`` used (both directions, sharpest level),
     colour RMS (0..1) of the residuals on the sharpest photos at the start (``rms_before``) and at the result
     (``rms_after``), the ``turn_deg`` from the start and whether the refinement was kept (``accepted``;
-    otherwise ``transform`` is the start)."""
+    otherwise ``transform`` is the start); the number of other ``candidates`` compared with the start and the
+    turn from the start to the one chosen to refine from (``chosen_turn_deg``, 0 when the start was)."""
 
     transform: np.ndarray
     pairs: int
@@ -87,6 +93,8 @@ class AppearanceFit:
     rms_after: float
     turn_deg: float
     accepted: bool
+    candidates: int = 0
+    chosen_turn_deg: float = 0.0
 
 
 def surface_normals(points: np.ndarray, hull: np.ndarray, step: float) -> np.ndarray:
@@ -233,6 +241,15 @@ def _rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
 
 
+def _soft_l1(r: np.ndarray, scale: float) -> float:
+    """Mean soft-L1 loss of residuals ``r`` (as :func:`scipy.optimize.least_squares` weighs them); inf for none."""
+    return float(np.mean(2.0 * (np.sqrt(1.0 + (r / scale) ** 2) - 1.0))) if len(r) else float("inf")
+
+
+def _angle_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(A[:3, :3] @ B[:3, :3].T).magnitude()))
+
+
 def _turned(w: np.ndarray, T: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     """``T [4,4]`` followed by the turn ``w [3]`` (rotation vector, radians) about ``pivot [3]``."""
     R = Rotation.from_rotvec(w).as_matrix()
@@ -250,17 +267,21 @@ def refine_motion_by_appearance(
     views2: list[ColourView],
     obj: int,
     config: AppearanceConfig | None = None,
+    candidates: list[np.ndarray] | None = None,
 ) -> AppearanceFit:
     """Refine the turn of object ``obj``'s motion ``T0 [4,4]`` (first state to second) by its colours (module
     docstring), about the centre of its first state's hull carried by ``T0``: the translation of that centre
     stays as given (the hulls fix it to about a millimetre; colours of a plain object would pull it).
+    ``candidates``: other motions ``[4,4]`` the shape allows as well as ``T0`` (its symmetric turns); the
+    refinement starts from whichever of ``T0`` and these agrees best with the photos blurred by
+    ``config.choice_blur`` (their translation replaced so that they, too, carry the centre where ``T0`` does).
 
     ``hull1 = (voxel centres [N,3], voxel size)``: its visual hull in the first state
     (:func:`.silhouettes.visual_hull`), ``views1`` that state's photos (all of one size); likewise for the
-    second state. Returns the start unchanged (``accepted=False``) when no pair of photos sees enough of the
-    object in both states, when the turn would exceed ``config.max_turn_deg`` or when the result matches the
-    sharpest photos worse than the start (colour RMS, each judged at the points both photos of a pair see
-    under it)."""
+    second state. Returns ``T0`` unchanged (``accepted=False``) when no pair of photos sees enough of the
+    object in both states, when the refinement would turn more than ``config.max_turn_deg`` from where it
+    started or when the result matches the sharpest photos worse than ``T0`` (colour RMS, each judged at the
+    points both photos of a pair see under it)."""
     cfg = config or AppearanceConfig()
     T0 = np.asarray(T0, np.float64)
     (h1, s1), (h2, s2) = hull1, hull2
@@ -288,7 +309,23 @@ def refine_motion_by_appearance(
     if fwd.n_pairs + bwd.n_pairs == 0:
         return none
     rms_before = _rms(np.concatenate([fwd.residuals(T0), bwd.residuals(np.linalg.inv(T0))]))
-    T = T0
+    start = T0
+    if candidates:  # the start among the shape's equals: the one whose colours agree best (T0 on ties)
+        choice = (_stacked(rgb1, cfg.choice_blur), _stacked(rgb2, cfg.choice_blur))
+
+        def cost(M):
+            f, b = terms(M, *choice)
+            return _soft_l1(np.concatenate([f.residuals(M), b.residuals(np.linalg.inv(M))]), cfg.loss_scale)
+
+        best = cost(T0)
+        for C in candidates:
+            M = np.eye(4)
+            M[:3, :3] = np.asarray(C, np.float64)[:3, :3]
+            M[:3, 3] = pivot - M[:3, :3] @ c1
+            c = cost(M)
+            if c < best:
+                start, best = M, c
+    T = start
     for i1, i2 in levels:
         fwd, bwd = terms(T, i1, i2)
         pairs = fwd.n_pairs + bwd.n_pairs
@@ -305,6 +342,7 @@ def refine_motion_by_appearance(
         T = _turned(sol.x, T, pivot)
     fwd, bwd = terms(T, *levels[-1])  # the result, judged as the start was
     rms_after = _rms(np.concatenate([fwd.residuals(T), bwd.residuals(np.linalg.inv(T))]))
-    turn = float(np.degrees(Rotation.from_matrix(T[:3, :3] @ T0[:3, :3].T).magnitude()))
+    turn = _angle_deg(T, start)
     ok = bool(turn <= cfg.max_turn_deg and rms_after <= rms_before and np.all(np.isfinite(T)))
-    return AppearanceFit(T if ok else T0, pairs, rms_before, rms_after, turn, ok)
+    return AppearanceFit(T if ok else T0, pairs, rms_before, rms_after, _angle_deg(T, T0), ok,
+                         len(candidates or []), _angle_deg(start, T0))  # fmt: skip

@@ -8,7 +8,10 @@ errors (degrees) and, per object, the motion error between the first two states:
 puts the object's true centre versus where it really went, and the angle between the rotations, both raw and
 modulo the object's shape symmetry when the truth's ``scene.json`` describes its shape (``dsg-synth`` does): a
 ball's rotation is then not scored, a cylinder's only by its axis, a box's and a prism's up to the turns that
-leave their shape unchanged.
+leave their shape unchanged. A patterned object (``dsg-synth`` maps its pattern onto it through a cube texture
+in the object's frame) is also scored modulo only those symmetries that are quarter turns about its axes
+(``rotation_error_mod_texture_deg``): a turn of a dotted ball that shows other dots counts, one that shows the
+same cube-mapped pattern does not (a lower bound where the pattern itself has fewer symmetries).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from train_world.capture.alignment import rotation_angle_deg, similarity_matrix,
 from train_world.capture.cameras import GL_TO_CV
 from train_world.capture.loader import Capture
 
-__all__ = ["compare_captures", "motion_error", "shape_symmetries"]
+__all__ = ["compare_captures", "motion_error", "shape_symmetries", "texture_symmetries"]
 
 
 def _turn(axis: int, deg: float) -> np.ndarray:
@@ -59,6 +62,30 @@ def shape_symmetries(shape: dict | None) -> str | list[np.ndarray]:
     return [np.eye(3)]
 
 
+def _cube_rotations() -> list[np.ndarray]:
+    out = []
+    for perm in ([0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]):
+        for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
+            m = np.zeros((3, 3))
+            m[np.arange(3), perm] = signs
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return out
+
+
+def texture_symmetries(shape: dict | None, pattern: str | None) -> str | list[np.ndarray]:
+    """Rotations ``[3,3]`` (object frame) that leave a ``dsg-synth`` object with ``pattern`` looking the same:
+    its :func:`shape_symmetries` that are also quarter turns about its axes (those of its cube texture), or
+    exactly :func:`shape_symmetries` when it is plain (``pattern`` None or "solid")."""
+    sym = shape_symmetries(shape)
+    if pattern in (None, "solid"):
+        return sym
+    cube = _cube_rotations()
+    if isinstance(sym, str):
+        return cube if sym == "all" else [m for m in cube if abs(m[2, 2]) == 1]
+    return [m for m in sym if any(np.allclose(m, c, atol=1e-9) for c in cube)]
+
+
 def _symmetric_error(r_est: np.ndarray, r_gt: np.ndarray, q1: np.ndarray, sym) -> float:
     if isinstance(sym, str) and sym == "all":
         return 0.0
@@ -69,11 +96,18 @@ def _symmetric_error(r_est: np.ndarray, r_gt: np.ndarray, q1: np.ndarray, sym) -
     return min(float(rotation_angle_deg(r_est.T @ r_gt @ q1 @ m @ q1.T)) for m in sym)
 
 
-def motion_error(T: np.ndarray, T_true: np.ndarray, P1_true: np.ndarray, shape: dict | None = None) -> dict:
+def motion_error(
+    T: np.ndarray,
+    T_true: np.ndarray,
+    P1_true: np.ndarray,
+    shape: dict | None = None,
+    pattern: str | None = None,
+) -> dict:
     """How far a rigid motion ``T`` ``[4,4]`` of one object is from its true motion ``T_true`` (both in the
     truth's frame), the object's true first-state pose being ``P1_true``: ``position_error`` (where the two put
-    the object's centre, truth units), ``rotation_error_deg`` and ``rotation_error_mod_symmetry_deg`` (modulo
-    the symmetries of ``shape``, a ``dsg-synth`` shape description; module docstring)."""
+    the object's centre, truth units), ``rotation_error_deg``, ``rotation_error_mod_symmetry_deg`` (modulo
+    the symmetries of ``shape``, a ``dsg-synth`` shape description) and ``rotation_error_mod_texture_deg``
+    (modulo those that also keep its ``pattern``, :func:`texture_symmetries`; module docstring)."""
     T, T_true, P1 = (np.asarray(a, dtype=np.float64) for a in (T, T_true, P1_true))
     c = P1[:3, 3]
     pos = np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - (T_true[:3, :3] @ c + T_true[:3, 3]))
@@ -82,6 +116,8 @@ def motion_error(T: np.ndarray, T_true: np.ndarray, P1_true: np.ndarray, shape: 
         "rotation_error_deg": float(rotation_angle_deg(T[:3, :3].T @ T_true[:3, :3])),
         "rotation_error_mod_symmetry_deg": _symmetric_error(T[:3, :3], T_true[:3, :3], P1[:3, :3],
                                                             shape_symmetries(shape)),
+        "rotation_error_mod_texture_deg": _symmetric_error(T[:3, :3], T_true[:3, :3], P1[:3, :3],
+                                                           texture_symmetries(shape, pattern)),
     }  # fmt: skip
 
 
@@ -110,7 +146,9 @@ def compare_captures(estimated: Capture, truth: Capture, src: str = "state1", ds
     T_gt = truth.relative_transform(src, dst)
     objects = []
     by_name = {o.name: i for i, o in enumerate(truth.objects)}
-    shapes = {o.get("name"): o.get("shape") for o in truth.metadata.get("objects", []) if isinstance(o, dict)}
+    described = [o for o in truth.metadata.get("objects", []) if isinstance(o, dict)]
+    shapes = {o.get("name"): o.get("shape") for o in described}
+    patterns = {o.get("name"): o.get("pattern") for o in described}
     for i, o in enumerate(estimated.objects):
         if o.name not in by_name:
             continue
@@ -120,7 +158,9 @@ def compare_captures(estimated: Capture, truth: Capture, src: str = "state1", ds
         objects.append(
             {
                 "name": o.name,
-                **motion_error(S @ T_est[i] @ np.linalg.inv(S), T_gt[j], P1, shapes.get(o.name)),
+                **motion_error(
+                    S @ T_est[i] @ np.linalg.inv(S), T_gt[j], P1, shapes.get(o.name), patterns.get(o.name)
+                ),
                 "true_rotation_deg": float(rotation_angle_deg(T_gt[j][:3, :3])),
                 "true_translation": float(np.linalg.norm(T_gt[j][:3, 3] + T_gt[j][:3, :3] @ c - c)),
             }

@@ -11,7 +11,8 @@ turn about the normal (texture still picks among a symmetric shape's equivalent 
 which the masks fix to about a millimetre, give the translation. An object without usable features (a plain
 ball) gets the hull fit that agrees best with its masks, the smallest turn among equally good ones. An object
 with texture (features found) then has its turn refined by its colours (:mod:`.appearance`) when the photos
-are given.
+are given, starting from whichever of the turns its hulls cannot tell apart (:func:`.silhouettes.symmetric_fits`:
+a ball's every turn, a prism's sides, upside down) its colours agree with best.
 Coordinates are those of the cameras (the reconstruction's frame); float64; deterministic (seeded).
 """
 
@@ -32,6 +33,7 @@ from train_world.capture.silhouettes import (
     hull_fits,
     object_centre,
     refine_hull_alignment,
+    symmetric_fits,
     visual_hull,
 )
 from train_world.capture.tracks import match_points_to_views, match_tracks, triangulate_tracks
@@ -368,7 +370,10 @@ def estimate_object_motion(
         T[:3, 3] = h2.mean(axis=0) - T[:3, :3] @ h1.mean(axis=0)
     appearance = None
     if hull_ok and fm is not None and colours is not None:  # texture: colours pin the turn down
-        appearance = refine_motion_by_appearance(T, (h1, step1), (h2, step2), *colours, obj.id)
+        equals = symmetric_fits(h1, h2, step, T, up)
+        appearance = refine_motion_by_appearance(
+            T, (h1, step1), (h2, step2), *colours, obj.id, candidates=equals
+        )
         if appearance.accepted:
             T, method = appearance.transform, method + "+appearance"
     centre = h1.mean(axis=0) if hull_ok else fm.points.mean(axis=0)

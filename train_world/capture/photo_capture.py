@@ -178,6 +178,8 @@ def _motion_report(obj, m: ObjectMotion, T_world: np.ndarray, scale: float) -> d
             "colour_rms_after": _finite(m.appearance.rms_after, 5),
             "turn_deg": _finite(m.appearance.turn_deg, 4),
             "kept": m.appearance.accepted,
+            "symmetric_candidates": m.appearance.candidates,
+            "chosen_turn_deg": _finite(m.appearance.chosen_turn_deg, 4),
         },
         "rotation_deg": round(
             float(np.degrees(np.arccos(np.clip((np.trace(T_world[:3, :3]) - 1) / 2, -1, 1)))), 4

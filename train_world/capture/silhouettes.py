@@ -5,7 +5,9 @@ one object in one state, :func:`object_centre` intersects the rays through its m
 :func:`visual_hull` carves a voxel grid around that centre with every view's mask (a pixel of another object
 does not carve: it may hide this one) and cuts it at the table plane. :func:`hull_fits` fits the first
 state's hull to the second's by trimmed ICP from several starting turns about the table normal (the candidates
-:mod:`.mask_fit` chooses from); :func:`refine_hull_alignment` refines a given motion locally.
+:mod:`.mask_fit` chooses from); :func:`refine_hull_alignment` refines a given motion locally;
+:func:`symmetric_fits` lists the motions a symmetric shape cannot tell from a given one (what colours then
+choose among, :mod:`.appearance`).
 Float64 throughout; deterministic.
 """
 
@@ -28,6 +30,7 @@ __all__ = [
     "object_centre",
     "refine_hull_alignment",
     "surface_voxels",
+    "symmetric_fits",
     "visual_hull",
 ]
 
@@ -40,6 +43,8 @@ CARVE_TOLERANCE = 0.03
 MIN_SEEN = 0.5
 #: starting turns (degrees) about the table normal tried by :func:`hull_fits`
 START_TURNS = tuple(range(0, 360, 30))
+#: turns (degrees) about the table normal, each also upside down, tried by :func:`symmetric_fits`
+SYMMETRY_TURNS = tuple(range(0, 360, 15))
 
 
 @dataclass(frozen=True)
@@ -208,3 +213,42 @@ def hull_fits(
         T = _icp(a, tb, b, T, 40, trim)
         fits.append((_cost(a, b, T, ta, tb, trim), T))
     return fits
+
+
+def symmetric_fits(
+    src: np.ndarray,
+    dst: np.ndarray,
+    step: float,
+    T: np.ndarray,
+    up: np.ndarray,
+    tolerance: float = 0.1,
+    trim: float = 0.9,
+    max_points: int = 600,
+) -> list[np.ndarray]:
+    """The motions ``[4,4]`` that align hull ``src`` to ``dst`` about as well as ``T`` does: ``T`` after each
+    turn of :data:`SYMMETRY_TURNS` about ``up`` through ``src``'s centroid, and after each of those turned
+    upside down (half a turn about an axis across ``up``), each refined by trimmed ICP; kept when its
+    :func:`hull_cost` is at most ``tolerance`` voxels above ``T``'s. A shape without symmetry keeps ``T`` and
+    its near neighbours; a ball keeps every turn. ICP runs on at most ``max_points`` surface voxels
+    (evenly strided); deterministic."""
+    T = np.asarray(T, np.float64)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    a, b = surface_voxels(src, step), surface_voxels(dst, step)
+    ta, tb = cKDTree(a), cKDTree(b)
+    sub = a[:: max(1, int(np.ceil(len(a) / max_points)))]
+    base = _cost(a, b, T, ta, tb, trim)
+    across = np.cross(up, np.eye(3)[int(np.argmin(np.abs(up)))])
+    flip = Rotation.from_rotvec(np.pi * across / np.linalg.norm(across)).as_matrix()
+    centre = src.mean(axis=0)
+    out = []
+    for upside_down in (False, True):
+        for deg in SYMMETRY_TURNS:
+            rot = Rotation.from_rotvec(np.radians(deg) * up).as_matrix()
+            if upside_down:
+                rot = rot @ flip
+            S = np.eye(4)
+            S[:3, :3], S[:3, 3] = rot, centre - rot @ centre
+            fit = _icp(sub, tb, b, T @ S, 10, trim)
+            if _cost(a, b, fit, ta, tb, trim) <= base + tolerance * step:
+                out.append(fit)
+    return out

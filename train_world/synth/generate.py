@@ -132,7 +132,13 @@ def _scene_json(
             "mujoco_version": mujoco.__version__,
         },
         "objects": [
-            {"id": i + 1, "name": o.name, "shape": _shape_dict(o.shape), "rest": o.rest}
+            {
+                "id": i + 1,
+                "name": o.name,
+                "shape": _shape_dict(o.shape),
+                "rest": o.rest,
+                "pattern": o.appearance.pattern,
+            }
             for i, o in enumerate(scene.objects)
         ],
         "table": {"bounds": [[x0, y0, 0.0], [x1, y1, 0.0]], "top_z": 0.0, "kind": scene.surface.kind},

@@ -10,8 +10,10 @@ Per scene: ``dsg-synth --scene S --as-photos [--marker M]`` writes JPEG photos, 
 camera centres. Metric scale is scored by that similarity's scale (1 when the marker's scale is exact).
 
 Writes ``{config, scenes: {scene: {capture_s, peak_rss_mib, registered, reprojection_px, cameras, frame,
-scale_error_percent, objects: {name: {method, position_mm, rotation_deg}}}}, summary, targets, met}``; rotation
-errors are modulo the object's shape symmetry (a ball has none to score). The targets are the capture step's:
+scale_error_percent, objects: {name: {method, position_mm, rotation_deg, rotation_mod_texture_deg}}}}, summary,
+targets, met}``; ``rotation_deg`` is modulo the object's shape symmetry (a ball has none to score),
+``rotation_mod_texture_deg`` modulo only the symmetries that also keep a patterned object's look (a dotted
+ball's turn counts; :func:`train_world.capture.compare.texture_symmetries`). The targets are the capture step's:
 camera centres within 0.5 % of the scene radius (median), rotations within 0.3 degrees (median), every object's
 motion within 3 mm and 1 degree, the scale within 1 %, and the capture within 2 minutes for 2 x 48 photos.
 """
@@ -83,6 +85,7 @@ def scene(name: str, work: Path, seed: int, marker: float | None, synth_args: li
                 "method": methods.get(o["name"]),
                 "position_mm": round(1000 * o["position_error"], 3),
                 "rotation_deg": round(o["rotation_error_mod_symmetry_deg"], 4),
+                "rotation_mod_texture_deg": round(o["rotation_error_mod_texture_deg"], 4),
                 "true_rotation_deg": round(o["true_rotation_deg"], 2),
                 "true_translation_mm": round(1000 * o["true_translation"], 1),
             }
@@ -109,6 +112,11 @@ def summarise(scenes: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], dict[s
         "objects": len(objs),
         "objects_within_motion_targets": sum(
             o["position_mm"] <= TARGETS["motion_mm"] and o["rotation_deg"] <= TARGETS["motion_deg"]
+            for o in objs
+        ),
+        "objects_within_motion_targets_mod_texture": sum(
+            o["position_mm"] <= TARGETS["motion_mm"]
+            and o["rotation_mod_texture_deg"] <= TARGETS["motion_deg"]
             for o in objs
         ),
         "median_motion_mm": sorted(o["position_mm"] for o in objs)[len(objs) // 2] if objs else None,

@@ -20,6 +20,7 @@ def test_photo_capture_scores_a_scene_against_its_truth(tmp_path):
     assert set(s["objects"]) == {"red_box", "blue_cylinder"}
     for o in s["objects"].values():
         assert 0 <= o["position_mm"] < 50 and 0 <= o["rotation_deg"] <= 180
+        assert o["rotation_deg"] <= o["rotation_mod_texture_deg"] + 1e-9  # fewer symmetries forgive less
         assert o["true_translation_mm"] > 10  # both objects move in two_blocks
     assert 0 < s["cameras"]["centre_median_percent_of_radius"] < 5
     assert s["cameras"]["rotation_median_deg"] <= s["cameras"]["rotation_max_deg"] < 5
@@ -32,22 +33,30 @@ def test_photo_capture_scores_a_scene_against_its_truth(tmp_path):
     assert (work / "two_blocks" / "photos" / "ground_truth" / "scene.json").is_file()
 
 
-def _scene(centre_pct: float, motions: list[tuple[float, float]], scale: float | None) -> dict:
+def _scene(centre_pct: float, motions: list[tuple[float, ...]], scale: float | None) -> dict:
+    """``motions``: (mm, deg modulo shape symmetry[, deg modulo texture symmetry, default the same])."""
     return {
         "capture_s": 30.0,
         "cameras": {"centre_median_percent_of_radius": centre_pct, "rotation_median_deg": 0.1},
         "scale_error_percent": scale,
-        "objects": {f"o{i}": {"position_mm": mm, "rotation_deg": deg} for i, (mm, deg) in enumerate(motions)},
+        "objects": {
+            f"o{i}": {"position_mm": m[0], "rotation_deg": m[1], "rotation_mod_texture_deg": m[-1]}
+            for i, m in enumerate(motions)
+        },
     }
 
 
 def test_summary_takes_the_worst_scene_and_counts_objects_within_both_motion_targets():
     summary, met = summarise(
-        {"a": _scene(0.2, [(1.0, 0.5), (4.0, 0.2)], 0.3), "b": _scene(0.6, [(2.0, 2.0)], None)}
+        {
+            "a": _scene(0.2, [(1.0, 0.5), (4.0, 0.2), (0.5, 0.0, 35.0)], 0.3),
+            "b": _scene(0.6, [(2.0, 2.0)], None),
+        }
     )
     assert summary["worst_camera_centre_percent_of_radius"] == 0.6
     assert (summary["worst_motion_mm"], summary["worst_motion_deg"]) == (4.0, 2.0)
-    assert summary["objects"] == 3 and summary["objects_within_motion_targets"] == 1
+    assert summary["objects"] == 4 and summary["objects_within_motion_targets"] == 2
+    assert summary["objects_within_motion_targets_mod_texture"] == 1  # a dotted ball turned the wrong way
     assert summary["worst_scale_percent"] == 0.3  # a scene without a marker has no scale to score
     assert met == {
         "camera_centre_percent_of_radius": False,

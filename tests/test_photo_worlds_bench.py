@@ -33,6 +33,8 @@ def test_photo_worlds_quick(tmp_path):
     for m in s["motions"].values():
         assert 0 <= m["estimate_mm"] < 50 and 0 <= m["refined_rotation_mod_symmetry_deg"] < 20
         assert m["refined_rotation_mod_symmetry_deg"] <= m["refined_rotation_deg"] + 1e-9
+        assert m["refined_rotation_mod_symmetry_deg"] <= m["refined_rotation_mod_texture_deg"] + 1e-9
+        assert m["refined_rotation_mod_texture_deg"] <= m["refined_rotation_deg"] + 1e-9
     assert r["summary"]["worst_estimate_mm"] == max(m["estimate_mm"] for m in s["motions"].values())
     assert s["gap_db_unaligned"] == pytest.approx(
         s["reference"]["psnr_unaligned"] - s["photo"]["psnr_unaligned"], abs=1e-3

@@ -286,8 +286,8 @@ def motion_errors(world: World, truth: str | Path, alignment: FrameAlignment) ->
     (``refined_*``): the world's motions are moved into the truth's frame through ``alignment`` and measured as
     :func:`train_world.capture.compare.motion_error` does (where they put the object's true centre, in the
     truth's units and mm when those are metres; the angle, also modulo the object's shape symmetry when the
-    truth describes its shape). None when the world records no motions (``metadata["motions"]``) or the truth
-    lacks either state's object poses or has other objects."""
+    truth describes its shape, and modulo only those that keep its pattern). None when the world records no
+    motions (``metadata["motions"]``) or the truth lacks either state's object poses or has other objects."""
     from train_world.capture import load_capture
     from train_world.capture.compare import motion_error
 
@@ -301,20 +301,22 @@ def motion_errors(world: World, truth: str | Path, alignment: FrameAlignment) ->
     P1 = np.asarray(cap.poses[src], np.float64)
     true_motion = np.asarray(cap.poses[dst], np.float64) @ np.linalg.inv(P1)
     S, S_inv = alignment.matrix, np.linalg.inv(alignment.matrix)
-    shapes = {
-        o.get("name"): o.get("shape") for o in cap.metadata.get("objects", []) if isinstance(o, Mapping)
-    }
+    described = [o for o in cap.metadata.get("objects", []) if isinstance(o, Mapping)]
+    shapes = {o.get("name"): o.get("shape") for o in described}
+    patterns = {o.get("name"): o.get("pattern") for o in described}
     objects = []
     for k, name in enumerate(world.object_names):
         e: dict[str, Any] = {"name": name}
         for key, tag in (("initial", "estimate"), ("final", "refined")):
             T = S_inv @ np.asarray(rec[key], dtype=np.float64)[k] @ S
-            m = motion_error(T, true_motion[k], P1[k], shapes.get(cap.objects[k].name))
+            obj = cap.objects[k].name
+            m = motion_error(T, true_motion[k], P1[k], shapes.get(obj), patterns.get(obj))
             e[f"{tag}_translation"] = m["position_error"]
             if cap.units == "metres":
                 e[f"{tag}_mm"] = m["position_error"] * 1000.0
             e[f"{tag}_rotation_deg"] = m["rotation_error_deg"]
             e[f"{tag}_rotation_mod_symmetry_deg"] = m["rotation_error_mod_symmetry_deg"]
+            e[f"{tag}_rotation_mod_texture_deg"] = m["rotation_error_mod_texture_deg"]
         objects.append(e)
     return {
         "src": src,

@@ -6,6 +6,7 @@ one object in one state, :func:`object_centre` intersects the rays through its m
 does not carve: it may hide this one) and cuts it at the table plane. :func:`hull_fits` fits the first
 state's hull to the second's by trimmed ICP from several starting turns about the table normal (the candidates
 :mod:`.mask_fit` chooses from); :func:`refine_hull_alignment` refines a given motion locally;
+:func:`fit_into_larger` places the smaller of two hulls inside the larger when they disagree;
 :func:`symmetric_fits` lists the motions a symmetric shape cannot tell from a given one (what colours then
 choose among, :mod:`.appearance`).
 Float64 throughout; deterministic.
@@ -29,6 +30,7 @@ __all__ = [
     "hull_fits",
     "object_centre",
     "refine_hull_alignment",
+    "fit_into_larger",
     "surface_voxels",
     "symmetric_fits",
     "visual_hull",
@@ -252,3 +254,18 @@ def symmetric_fits(
             if _cost(a, b, fit, ta, tb, trim) <= base + tolerance * step:
                 out.append(fit)
     return out
+
+
+def fit_into_larger(
+    src: np.ndarray, dst: np.ndarray, step: float, T: np.ndarray, trim: float = 0.9
+) -> np.ndarray:
+    """The motion ``[4,4]`` from hull ``src`` to hull ``dst`` (refined from ``T``) that puts the smaller one's
+    surface on the larger one's: trimmed ICP one way only, from the smaller to the larger. A visual hull only
+    grows where the photos cannot carve (views where another object hides it), so when two hulls of one object
+    disagree in volume the smaller is the truer shape, and it belongs inside the larger where that is carved
+    well; their centroids would be off by the larger one's excess."""
+    T = np.asarray(T, np.float64)
+    a, b = surface_voxels(src, step), surface_voxels(dst, step)
+    if len(src) <= len(dst):
+        return _icp(a, cKDTree(b), b, T, 60, trim)
+    return np.linalg.inv(_icp(b, cKDTree(a), a, np.linalg.inv(T), 60, trim))

@@ -74,3 +74,33 @@ def test_hulls_of_one_size_fit_as_before():
     T = fit_into_larger(h1, h2, STEP, _turned(T_true, 3.0, T_true[:3, 3]))
     assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.5 * STEP
     assert np.degrees(Rotation.from_matrix(T[:3, :3] @ T_true[:3, :3].T).magnitude()) < 2.0  # from 3
+
+
+def test_carving_counts_every_view_as_a_plain_projection_does():
+    """The compiled carving kernel against the projection written out in numpy: the same pixel for every
+    point, behind-the-camera and off-image points not seen."""
+    from train_world.capture.silhouettes import _carve_view
+
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-0.3, 0.3, (5000, 3))
+    inside, outside, seen = (np.zeros(len(X), np.int32) for _ in range(3))
+    ref = [np.zeros(len(X), np.int64) for _ in range(3)]
+    for k in range(4):
+        w2c = np.eye(4)
+        w2c[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, 0.4, 3)).as_matrix()
+        w2c[:3, 3] = [0.0, 0.0, 0.25]  # some points behind the camera
+        K = np.array([[70.0 + k, 0.0, 31.0], [0.0, 72.0, 29.5], [0.0, 0.0, 1.0]])
+        ids = rng.integers(0, 3, (60, 64)).astype(np.uint8)
+        _carve_view(X, w2c[:3].copy(), K[0, 0], K[1, 1], K[0, 2], K[1, 2], ids, 2, inside, outside, seen)
+        c = X @ w2c[:3, :3].T + w2c[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * c[:, 0] / c[:, 2] + K[0, 2]
+            v = K[1, 1] * c[:, 1] / c[:, 2] + K[1, 2]
+        ok = (c[:, 2] > 0) & (u >= 0) & (u < 64) & (v >= 0) & (v < 60)
+        label = ids[np.where(ok, v, 0).astype(np.int64), np.where(ok, u, 0).astype(np.int64)]
+        ref[0] += ok & (label == 2)
+        ref[1] += ok & (label == 0)
+        ref[2] += ok
+    assert 0 < ref[2].mean() < 4  # some points in view, some not
+    for got, want in zip((inside, outside, seen), ref, strict=True):
+        assert np.array_equal(got, want)

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
+import numba as nb
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
@@ -63,16 +64,6 @@ class SilhouetteView:
         """``[h,w]`` float64: each pixel's distance in pixels to the nearest pixel of any object (0 on the
         objects); computed once per view."""
         return distance_transform_edt(self.ids == 0)
-
-
-def _project(v: SilhouetteView, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    c = X @ v.w2c[:3, :3].T + v.w2c[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = v.K[0, 0] * c[:, 0] / c[:, 2] + v.K[0, 2]
-        w = v.K[1, 1] * c[:, 1] / c[:, 2] + v.K[1, 2]
-    h, wd = v.ids.shape
-    ok = (c[:, 2] > 0) & (u >= 0) & (u < wd) & (w >= 0) & (w < h)
-    return np.where(ok, u, 0).astype(np.int64), np.where(ok, w, 0).astype(np.int64), ok
 
 
 def object_centre(views: list[SilhouetteView], obj: int) -> tuple[np.ndarray, float, int]:
@@ -122,14 +113,36 @@ def visual_hull(
     inside = np.zeros(len(X), np.int32)
     outside = np.zeros(len(X), np.int32)
     seen = np.zeros(len(X), np.int32)
+    X = np.ascontiguousarray(X)
     for v in views:
-        u, w, ok = _project(v, X)
-        ids = v.ids[w, u]
-        inside += ok & (ids == obj)
-        outside += ok & (ids == 0)
-        seen += ok
+        K, w2c = np.asarray(v.K, np.float64), np.ascontiguousarray(v.w2c[:3], np.float64)
+        ids = np.ascontiguousarray(v.ids, np.uint8)
+        _carve_view(X, w2c, K[0, 0], K[1, 1], K[0, 2], K[1, 2], ids, obj, inside, outside, seen)
     keep = (inside >= 2) & (outside <= CARVE_TOLERANCE * (inside + outside)) & (inside >= MIN_SEEN * seen)
     return X[keep], step
+
+
+@nb.njit(cache=True)
+def _carve_view(X, w2c, fx, fy, cx, cy, ids, obj, inside, outside, seen):  # pragma: no cover - compiled
+    """Count, for every point of ``X [N,3]``, whether one view (OpenCV ``w2c [3,4]``, pinhole intrinsics, object
+    ids ``ids [h,w]``) sees it in the image (``seen``), on object ``obj`` (``inside``) or on background
+    (``outside``); the pixel is ``(int(u), int(v))`` of the projection ``(u, v)``, in the image when
+    ``0 <= u < w`` and ``0 <= v < h``."""
+    h, wd = ids.shape
+    for i in range(X.shape[0]):
+        x, y, z = X[i, 0], X[i, 1], X[i, 2]
+        c2 = w2c[2, 0] * x + w2c[2, 1] * y + w2c[2, 2] * z + w2c[2, 3]
+        if not c2 > 0.0:
+            continue
+        u = fx * (w2c[0, 0] * x + w2c[0, 1] * y + w2c[0, 2] * z + w2c[0, 3]) / c2 + cx
+        v = fy * (w2c[1, 0] * x + w2c[1, 1] * y + w2c[1, 2] * z + w2c[1, 3]) / c2 + cy
+        if u >= 0.0 and u < wd and v >= 0.0 and v < h:
+            seen[i] += 1
+            label = ids[int(v), int(u)]
+            if label == obj:
+                inside[i] += 1
+            elif label == 0:
+                outside[i] += 1
 
 
 def surface_voxels(points: np.ndarray, step: float) -> np.ndarray:

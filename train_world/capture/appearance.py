@@ -82,10 +82,11 @@ class AppearanceConfig:
 @dataclass(frozen=True)
 class AppearanceFit:
     """``transform [4,4]`` (first state to second), photo ``pairs`` used (both directions, sharpest level),
-    colour RMS (0..1) of the residuals on the sharpest photos at the start (``rms_before``) and at the result
-    (``rms_after``), the ``turn_deg`` from the start and whether the refinement was kept (``accepted``;
-    otherwise ``transform`` is the start); the number of other ``candidates`` compared with the start and the
-    turn from the start to the one chosen to refine from (``chosen_turn_deg``, 0 when the start was)."""
+    colour RMS (0..1) of the residuals on the sharpest photos at the given motion (``rms_before``) and at the
+    result (``rms_after``), the result's ``turn_deg`` from the given motion and whether it was kept
+    (``accepted``; otherwise ``transform`` is the given motion); the number of other ``candidates`` compared
+    with the given motion and the turn from it to the one the refinement started from (``chosen_turn_deg``,
+    0 when that was the given motion itself)."""
 
     transform: np.ndarray
     pairs: int

@@ -33,6 +33,18 @@ def _turn(axis: int, deg: float) -> np.ndarray:
     return m
 
 
+def _cube_rotations() -> list[np.ndarray]:
+    """The 24 rotations ``[3,3]`` that map the coordinate axes onto themselves (a cube's)."""
+    out = []
+    for perm in ([0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]):
+        for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
+            m = np.zeros((3, 3))
+            m[np.arange(3), perm] = signs
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return out
+
+
 def shape_symmetries(shape: dict | None) -> str | list[np.ndarray]:
     """Rotations ``[3,3]`` (object frame) that leave a ``dsg-synth`` shape unchanged, or ``"all"`` (sphere) or
     ``"axis"`` (any turn about z, and upside down: cylinder, capsule); ``[I]`` when unknown."""
@@ -45,14 +57,7 @@ def shape_symmetries(shape: dict | None) -> str | list[np.ndarray]:
         return "axis"
     if kind == "box":
         e = np.asarray(shape.get("extents", [1, 2, 3]), np.float64)
-        out = []
-        for perm in ([0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]):
-            for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
-                m = np.zeros((3, 3))
-                m[np.arange(3), perm] = signs
-                if np.linalg.det(m) > 0 and np.allclose(np.abs(m) @ e, e, rtol=1e-6):
-                    out.append(m)
-        return out
+        return [m for m in _cube_rotations() if np.allclose(np.abs(m) @ e, e, rtol=1e-6)]
     if kind == "mesh" and shape.get("mesh") in ("prism", "frustum"):
         n = int(shape.get("sides", 1))
         out = [_turn(2, 360.0 * k / n) for k in range(n)]
@@ -60,17 +65,6 @@ def shape_symmetries(shape: dict | None) -> str | list[np.ndarray]:
             out += [m @ _turn(0, 180.0) for m in out]
         return out
     return [np.eye(3)]
-
-
-def _cube_rotations() -> list[np.ndarray]:
-    out = []
-    for perm in ([0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]):
-        for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
-            m = np.zeros((3, 3))
-            m[np.arange(3), perm] = signs
-            if np.linalg.det(m) > 0:
-                out.append(m)
-    return out
 
 
 def texture_symmetries(shape: dict | None, pattern: str | None) -> str | list[np.ndarray]:

@@ -20,7 +20,6 @@ from train_world.capture.appearance import (
     visible,
 )
 from train_world.capture.silhouettes import (
-    SilhouetteView,
     object_centre,
     surface_voxels,
     symmetric_fits,
@@ -73,7 +72,7 @@ def _render(w2c: np.ndarray, pose: np.ndarray, textured: bool = True) -> ColourV
     rgb = np.where(hit[:, None], tex * shade[:, None], 0.45)
     ids = hit.astype(np.uint8)
     return ColourView(
-        (255 * rgb).round().astype(np.uint8).reshape(SIZE, SIZE, 3), ids.reshape(SIZE, SIZE), K, w2c
+        ids.reshape(SIZE, SIZE), K, w2c, (255 * rgb).round().astype(np.uint8).reshape(SIZE, SIZE, 3)
     )
 
 
@@ -97,7 +96,7 @@ def scene():
     views = [[_render(c, P) for c in cams] for P in (P1, T @ P1)]
     hulls = []
     for vs in views:
-        sil = [SilhouetteView(v.ids, v.K, v.w2c) for v in vs]
+        sil = list(vs)  # a photo is a silhouette view with colours
         centre, radius, _ = object_centre(sil, 1)
         hulls.append(visual_hull(sil, 1, centre, radius, PLANE))
     return views, hulls, T
@@ -151,7 +150,7 @@ def test_a_larger_turn_than_allowed_keeps_the_start(scene):
 
 def test_no_photo_pair_sees_the_object(scene):
     views, hulls, T_true = scene
-    empty = [ColourView(v.rgb, np.zeros_like(v.ids), v.K, v.w2c) for v in views[1]]
+    empty = [ColourView(np.zeros_like(v.ids), v.K, v.w2c, v.rgb) for v in views[1]]
     fit = refine_motion_by_appearance(T_true, hulls[0], hulls[1], views[0], empty, 1)
     assert not fit.accepted and fit.pairs == 0 and np.array_equal(fit.transform, T_true)
     fit = refine_motion_by_appearance(T_true, hulls[0], hulls[1], views[0], [], 1)
@@ -174,7 +173,7 @@ def test_visible_points_face_the_camera_and_are_not_hidden(scene):
     both = visible(v, 1, np.concatenate([X, X + 0.05 * ray]), np.concatenate([N, N]), step)
     assert np.array_equal(both[: len(X)], seen) and not both[len(X) :][seen].any()
     # a photo that shows another object there sees none of it
-    other = ColourView(v.rgb, np.where(v.ids == 1, 2, 0).astype(np.uint8), v.K, v.w2c)
+    other = ColourView(np.where(v.ids == 1, 2, 0).astype(np.uint8), v.K, v.w2c, v.rgb)
     assert not visible(other, 1, X, N, step).any()
 
 
@@ -216,7 +215,7 @@ def test_large_photos_give_the_same_turn(scene):
         K = v.K.copy()
         K[0, 2] += 200
         K[1, 2] += 50
-        return ColourView(rgb, ids, K, v.w2c)
+        return ColourView(ids, K, v.w2c, rgb)
 
     start = _perturbed(T_true, hulls[0][0], (2.0, 0.0, -3.0))
     small = refine_motion_by_appearance(start, hulls[0], hulls[1], views[0], views[1], 1)

@@ -31,7 +31,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from train_world.capture.silhouettes import surface_voxels
+from train_world.capture.silhouettes import SilhouetteView, surface_voxels
 
 __all__ = [
     "AppearanceConfig",
@@ -44,19 +44,12 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class ColourView:
-    """One photo: ``rgb [h,w,3]`` uint8, object ids ``ids [h,w]`` uint8 (0 = background), intrinsics ``K [3,3]``
-    for that size and OpenCV world-to-camera ``w2c [4,4]``."""
+class ColourView(SilhouetteView):
+    """One photo: a :class:`.silhouettes.SilhouetteView` (object ids ``ids [h,w]`` uint8, 0 = background,
+    intrinsics ``K [3,3]`` for that size, OpenCV world-to-camera ``w2c [4,4]``) with its colours
+    ``rgb [h,w,3]`` uint8."""
 
     rgb: np.ndarray
-    ids: np.ndarray
-    K: np.ndarray
-    w2c: np.ndarray
-
-    @property
-    def centre(self) -> np.ndarray:
-        """The camera centre ``[3]``."""
-        return -self.w2c[:3, :3].T @ self.w2c[:3, 3]
 
 
 @dataclass(frozen=True)
@@ -218,7 +211,7 @@ def _cropped(views: list[ColourView], obj: int, blurs: tuple[float, ...]) -> lis
         K = v.K.copy()
         K[0, 2] -= x0
         K[1, 2] -= y0
-        out.append(ColourView(v.rgb[y0 : y0 + ch, x0 : x0 + cw], v.ids[y0 : y0 + ch, x0 : x0 + cw], K, v.w2c))
+        out.append(ColourView(v.ids[y0 : y0 + ch, x0 : x0 + cw], K, v.w2c, v.rgb[y0 : y0 + ch, x0 : x0 + cw]))
     return out
 
 

@@ -63,7 +63,7 @@ from train_world.capture.photos import (
 )
 from train_world.capture.points import POINTS_FILE, point_colours, write_points_ply
 from train_world.capture.sfm import SfmResult, quiet_colmap, run_sfm, silenced_stderr
-from train_world.capture.silhouettes import SilhouetteView, object_centre
+from train_world.capture.silhouettes import object_centre
 from train_world.capture.undistort import Undistorter
 
 __all__ = ["CAPTURE_TOOL_VERSION", "build_capture"]
@@ -89,11 +89,9 @@ def _extractor(long_side: int):
         return pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
 
 
-def _silhouette(
-    rgb: np.ndarray, ids: np.ndarray, K: np.ndarray, w2c: np.ndarray
-) -> tuple[SilhouetteView, ColourView]:
-    """The photo's masks, and the photo with them, at most :data:`SILHOUETTE_SIZE` pixels on the long side
-    (for the objects' motions)."""
+def _photo_view(rgb: np.ndarray, ids: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> ColourView:
+    """The photo with its masks, at most :data:`SILHOUETTE_SIZE` pixels on the long side (for the objects'
+    motions: its silhouettes and colours)."""
     h, w = ids.shape
     s = min(1.0, SILHOUETTE_SIZE / max(h, w))
     if s < 1.0:
@@ -103,8 +101,7 @@ def _silhouette(
         K = K.copy()
         K[0] *= size[0] / w
         K[1] *= size[1] / h
-    ids = np.ascontiguousarray(ids)
-    return SilhouetteView(ids, K, w2c), ColourView(np.ascontiguousarray(rgb), ids, K, w2c)
+    return ColourView(np.ascontiguousarray(ids), K, w2c, np.ascontiguousarray(rgb))
 
 
 def _write_views(
@@ -117,13 +114,12 @@ def _write_views(
 ) -> tuple[
     dict[str, Undistorter],
     dict[str, list[ViewFeatures]],
-    dict[str, list[SilhouetteView]],
     dict[str, list[ColourView]],
 ]:
-    """Undistorted photos and masks into ``stage/<state>/``; object features, silhouettes and colours per
-    state; with a list ``marker``, the views that see the ArUco marker are appended to it
-    (:class:`MarkerObservation`)."""
-    unds, feats, sils, colours = {}, {}, {}, {}
+    """Undistorted photos and masks into ``stage/<state>/``; object features and the photos with their masks
+    (for silhouettes and colours) per state; with a list ``marker``, the views that see the ArUco marker are
+    appended to it (:class:`MarkerObservation`)."""
+    unds, feats, views = {}, {}, {}
     detector = marker_detector() if marker is not None else None
     total = sum(len(sfm.registered[s]) for s in PHOTO_STATES)
     with tqdm(
@@ -133,7 +129,7 @@ def _write_views(
             cam = sfm.cameras[s]
             und = unds[s] = Undistorter.for_camera(cam.model, cam.params, cam.width, cam.height)
             ex = _extractor(max(und.width, und.height))
-            feats[s], sils[s], colours[s] = [], [], []
+            feats[s], views[s] = [], []
             for v in capture.states[s]:
                 if v.key not in sfm.world_to_camera:
                     continue
@@ -144,15 +140,13 @@ def _write_views(
                 w2c = sfm.world_to_camera[v.key]
                 gray = np.asarray(Image.fromarray(rgb).convert("L"))
                 feats[s].append(extract_view_features(gray, ids, und.K, w2c, ex, FEATURE_SIZE))
-                sil, colour = _silhouette(rgb, ids, und.K, w2c)
-                sils[s].append(sil)
-                colours[s].append(colour)
+                views[s].append(_photo_view(rgb, ids, und.K, w2c))
                 if marker is not None:
                     seen = detect_marker(rgb, marker_id, detector)
                     if seen is not None and (not marker or seen[0] == marker[0].marker_id):
                         marker.append(MarkerObservation(v.key, seen[0], seen[1], und.K, w2c))
                 bar.update(1)
-    return unds, feats, sils, colours
+    return unds, feats, views
 
 
 def _finite(x: float, digits: int) -> float | None:
@@ -230,10 +224,10 @@ def build_capture(
         t = time.perf_counter()
         marker_obs = [] if marker_size is not None else None
         with quiet_colmap():
-            unds, feats, sils, colours = _write_views(capture, sfm, stage, progress, marker_obs, marker_id)
+            unds, feats, photo_views = _write_views(capture, sfm, stage, progress, marker_obs, marker_id)
         t_views = time.perf_counter() - t
         centres = np.array([np.linalg.inv(w)[:3, 3] for w in sfm.world_to_camera.values()])
-        anchors = [object_centre(sils[s], o.id)[0] for s in PHOTO_STATES for o in capture.objects]
+        anchors = [object_centre(photo_views[s], o.id)[0] for s in PHOTO_STATES for o in capture.objects]
         anchors = np.array([a for a in anchors if np.all(np.isfinite(a))]).reshape(-1, 3)
         if len(anchors) == 0:
             raise PhotoCaptureError(
@@ -254,11 +248,11 @@ def build_capture(
             motions[o.id] = estimate_object_motion(
                 o,
                 (feats["state1"], feats["state2"]),
-                (sils["state1"], sils["state2"]),
+                (photo_views["state1"], photo_views["state2"]),
                 (plane.normal, plane.offset),
                 tol,
                 seed=o.id,
-                colours=(colours["state1"], colours["state2"]),
+                colours=(photo_views["state1"], photo_views["state2"]),
             )
         t_motions = time.perf_counter() - t
         obj_centres = np.array([m.centre for m in motions.values()])

@@ -59,6 +59,11 @@ class SilhouetteView:
     K: np.ndarray
     w2c: np.ndarray
 
+    @property
+    def centre(self) -> np.ndarray:
+        """The camera centre ``[3]``."""
+        return -self.w2c[:3, :3].T @ self.w2c[:3, 3]
+
     @cached_property
     def object_distance(self) -> np.ndarray:
         """``[h,w]`` float64: each pixel's distance in pixels to the nearest pixel of any object (0 on the

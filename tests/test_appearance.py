@@ -15,6 +15,7 @@ from train_world.capture.appearance import (
     AppearanceConfig,
     AppearanceFit,
     ColourView,
+    colour_score,
     refine_motion_by_appearance,
     surface_normals,
     visible,
@@ -267,3 +268,19 @@ def test_colours_choose_among_the_shapes_equal_turns(scene):
     assert fit.rms_after < fit.rms_before
     c = h1.mean(axis=0)  # the centre stays where the start put it
     assert np.allclose(fit.transform[:3, :3] @ c + fit.transform[:3, 3], start[:3, :3] @ c + start[:3, 3])
+
+
+def test_colour_score_tells_a_shapes_equal_turns_apart(scene):
+    """The hulls fit the true motion and the half-turned one alike; the colours score the true one lower. A plain
+    box's shading tells turns apart too (the light moves with the camera), though not its own half turn, which
+    looks the same."""
+    views, hulls, T_true = scene
+    half = _half_turned(T_true, hulls[0][0])
+    score = colour_score(hulls[0], hulls[1], views[0], views[1], 1)
+    assert score(T_true) < 0.5 * score(half)
+    cams = _cameras()
+    plain = [[_render(c, P, textured=False) for c in cams] for P in (np.eye(4), T_true)]
+    plain_score = colour_score(hulls[0], hulls[1], plain[0], plain[1], 1)
+    assert plain_score(T_true) < plain_score(_perturbed(T_true, hulls[0][0], (0.0, 0.0, 15.0)))
+    assert plain_score(T_true) == pytest.approx(plain_score(half), rel=1e-6)
+    assert colour_score(hulls[0], hulls[1], views[0], [], 1)(T_true) == float("inf")  # nothing to score by

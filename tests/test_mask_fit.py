@@ -99,6 +99,28 @@ def test_equally_good_candidates_go_to_the_preferred_turn():
     assert i == 1 and cost == float("inf")
 
 
+def test_a_rank_decides_among_equally_good_candidates_only():
+    v1, v2, T_true = _scene()
+    h1, h2 = _hull(v1), _hull(v2)
+    near = T_true.copy()
+    near[:3, :3] = Rotation.from_euler("z", 0.01, degrees=True).as_matrix() @ T_true[:3, :3]
+    far = np.eye(4)
+    far[:3, 3] = T_true[:3, 3]
+    calls = []
+
+    def rank(T):  # prefers the candidate turned 0.01 deg, and the far one most of all
+        calls.append(T)
+        return 0.0 if np.allclose(T, far) else (1.0 if np.allclose(T, near) else 2.0)
+
+    i, cost = choose_on_masks([T_true, near, far], h1, h2, v1, v2, 1, prefer=T_true[:3, :3], rank=rank)
+    assert i == 1 and cost == mask_cost(h1, h2, v1, v2, 1, near)  # over the preferred rotation
+    assert len(calls) == 2  # the far candidate is no tie: never ranked, never taken
+    # equal ranks: the preferred rotation decides, as without a rank
+    assert (
+        choose_on_masks([T_true, near], h1, h2, v1, v2, 1, prefer=T_true[:3, :3], rank=lambda T: 0.0)[0] == 0
+    )
+
+
 def test_outline_is_the_objects_edge_and_not_the_photos():
     from train_world.capture.mask_fit import _Views
 

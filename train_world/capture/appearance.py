@@ -23,6 +23,7 @@ Coordinates are the cameras' (OpenCV world-to-camera ``w2c``); float64 geometry;
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +38,7 @@ __all__ = [
     "AppearanceConfig",
     "AppearanceFit",
     "ColourView",
+    "colour_score",
     "refine_motion_by_appearance",
     "surface_normals",
     "visible",
@@ -253,6 +255,84 @@ def _turned(w: np.ndarray, T: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     return out
 
 
+class _Photos:
+    """Both states' photos of one object cut to its window (:func:`_cropped`), blurred on demand, with its
+    hulls' surface points and normals: what the colour residuals of any motion need."""
+
+    def __init__(self, hull1, hull2, views1, views2, obj: int, cfg: AppearanceConfig):
+        (h1, self.s1), (h2, self.s2) = hull1, hull2
+        self.obj, self.cfg, self.levels = obj, cfg, {}
+        self.X1, self.X2 = surface_voxels(h1, self.s1), surface_voxels(h2, self.s2)
+        self.usable = bool(min(len(self.X1), len(self.X2)) >= cfg.min_points and views1 and views2)
+        if not self.usable:
+            return
+        self.N1, self.N2 = surface_normals(self.X1, h1, self.s1), surface_normals(self.X2, h2, self.s2)
+        self.c1, self.c2 = h1.mean(axis=0), h2.mean(axis=0)
+        self.views1, self.views2 = _cropped(views1, obj, cfg.blurs), _cropped(views2, obj, cfg.blurs)
+        self.rgb1 = np.stack([v.rgb for v in self.views1]).astype(np.float32) / 255.0
+        self.rgb2 = np.stack([v.rgb for v in self.views2]).astype(np.float32) / 255.0
+
+    def level(self, blur: float) -> tuple[np.ndarray, np.ndarray]:
+        if blur not in self.levels:
+            self.levels[blur] = (_stacked(self.rgb1, blur), _stacked(self.rgb2, blur))
+        return self.levels[blur]
+
+    def terms(self, T: np.ndarray, blur: float) -> tuple[_Terms, _Terms]:
+        """Both directions' residual terms of motion ``T [4,4]`` on the photos blurred by ``blur``."""
+        cfg, (i1, i2), Ti = self.cfg, self.level(blur), np.linalg.inv(T)
+        fwd = _Terms(
+            self.views1,
+            self.views2,
+            i1,
+            i2,
+            self.obj,
+            self.X1,
+            self.N1,
+            self.s1,
+            _pairs(self.views1, self.views2, T, self.c1, cfg.max_pair_angle_deg),
+            T,
+            cfg.min_points,
+        )
+        bwd = _Terms(
+            self.views2,
+            self.views1,
+            i2,
+            i1,
+            self.obj,
+            self.X2,
+            self.N2,
+            self.s2,
+            _pairs(self.views2, self.views1, Ti, self.c2, cfg.max_pair_angle_deg),
+            Ti,
+            cfg.min_points,
+        )
+        return fwd, bwd  # fmt: skip
+
+    def cost(self, T: np.ndarray) -> float:
+        """Mean robust colour difference of motion ``T [4,4]`` on the photos blurred by ``choice_blur``."""
+        if not self.usable:
+            return float("inf")
+        f, b = self.terms(T, self.cfg.choice_blur)
+        return _soft_l1(np.concatenate([f.residuals(T), b.residuals(np.linalg.inv(T))]), self.cfg.loss_scale)
+
+
+def colour_score(
+    hull1: tuple[np.ndarray, float],
+    hull2: tuple[np.ndarray, float],
+    views1: list[ColourView],
+    views2: list[ColourView],
+    obj: int,
+    config: AppearanceConfig | None = None,
+) -> Callable[[np.ndarray], float]:
+    """A score of motions ``T [4,4]`` of object ``obj`` by its colours (arguments as
+    :func:`refine_motion_by_appearance`'s): the mean robust (soft L1) colour difference, at the hull points
+    both photos of each pair see, between the photos blurred by ``config.choice_blur`` px; lower is better,
+    inf when no pair sees the object. Under light that moves with the camera even a plain object's shading
+    agrees best at its true turn, so it breaks ties that shape alone leaves."""
+    photos = _Photos(hull1, hull2, views1, views2, obj, config or AppearanceConfig())
+    return photos.cost
+
+
 def refine_motion_by_appearance(
     T0: np.ndarray,
     hull1: tuple[np.ndarray, float],
@@ -278,50 +358,28 @@ def refine_motion_by_appearance(
     points both photos of a pair see under it)."""
     cfg = config or AppearanceConfig()
     T0 = np.asarray(T0, np.float64)
-    (h1, s1), (h2, s2) = hull1, hull2
-    X1, X2 = surface_voxels(h1, s1), surface_voxels(h2, s2)
     none = AppearanceFit(T0, 0, float("nan"), float("nan"), 0.0, False)
-    if len(X1) < cfg.min_points or len(X2) < cfg.min_points or not views1 or not views2:
+    photos = _Photos(hull1, hull2, views1, views2, obj, cfg)
+    if not photos.usable:
         return none
-    N1, N2 = surface_normals(X1, h1, s1), surface_normals(X2, h2, s2)
-    c1, c2 = h1.mean(axis=0), h2.mean(axis=0)
-    views1, views2 = _cropped(views1, obj, cfg.blurs), _cropped(views2, obj, cfg.blurs)
-    rgb1 = np.stack([v.rgb for v in views1]).astype(np.float32) / 255.0
-    rgb2 = np.stack([v.rgb for v in views2]).astype(np.float32) / 255.0
-    pivot = T0[:3, :3] @ c1 + T0[:3, 3]
-
-    def terms(T, i1, i2):
-        Ti = np.linalg.inv(T)
-        fwd = _Terms(views1, views2, i1, i2, obj, X1, N1, s1,
-                     _pairs(views1, views2, T, c1, cfg.max_pair_angle_deg), T, cfg.min_points)  # fmt: skip
-        bwd = _Terms(views2, views1, i2, i1, obj, X2, N2, s2,
-                     _pairs(views2, views1, Ti, c2, cfg.max_pair_angle_deg), Ti, cfg.min_points)  # fmt: skip
-        return fwd, bwd
-
-    levels = [(_stacked(rgb1, b), _stacked(rgb2, b)) for b in cfg.blurs]
-    fwd, bwd = terms(T0, *levels[-1])  # the start, on the sharpest photos
+    pivot = T0[:3, :3] @ photos.c1 + T0[:3, 3]
+    fwd, bwd = photos.terms(T0, cfg.blurs[-1])  # the start, on the sharpest photos
     if fwd.n_pairs + bwd.n_pairs == 0:
         return none
     rms_before = _rms(np.concatenate([fwd.residuals(T0), bwd.residuals(np.linalg.inv(T0))]))
     start = T0
     if candidates:  # the start among the shape's equals: the one whose colours agree best (T0 on ties)
-        choice = (_stacked(rgb1, cfg.choice_blur), _stacked(rgb2, cfg.choice_blur))
-
-        def cost(M):
-            f, b = terms(M, *choice)
-            return _soft_l1(np.concatenate([f.residuals(M), b.residuals(np.linalg.inv(M))]), cfg.loss_scale)
-
-        best = cost(T0)
+        best = photos.cost(T0)
         for C in candidates:
             M = np.eye(4)
             M[:3, :3] = np.asarray(C, np.float64)[:3, :3]
-            M[:3, 3] = pivot - M[:3, :3] @ c1
-            c = cost(M)
+            M[:3, 3] = pivot - M[:3, :3] @ photos.c1
+            c = photos.cost(M)
             if c < best:
                 start, best = M, c
     T = start
-    for i1, i2 in levels:
-        fwd, bwd = terms(T, i1, i2)
+    for blur in cfg.blurs:
+        fwd, bwd = photos.terms(T, blur)
         pairs = fwd.n_pairs + bwd.n_pairs
         if pairs == 0:
             return none
@@ -334,7 +392,7 @@ def refine_motion_by_appearance(
         sol = least_squares(res, np.zeros(3), loss="soft_l1", f_scale=cfg.loss_scale, x_scale=0.01,
                             diff_step=1e-4, max_nfev=100)  # fmt: skip
         T = _turned(sol.x, T, pivot)
-    fwd, bwd = terms(T, *levels[-1])  # the result, judged as the start was
+    fwd, bwd = photos.terms(T, cfg.blurs[-1])  # the result, judged as the start was
     rms_after = _rms(np.concatenate([fwd.residuals(T), bwd.residuals(np.linalg.inv(T))]))
     turn = _angle_deg(T, start)
     ok = bool(turn <= cfg.max_turn_deg and rms_after <= rms_before and np.all(np.isfinite(T)))

@@ -9,10 +9,13 @@ objects (from each photo's distance map to the nearest object pixel: a pixel of 
 one, so it costs nothing) and how far each pixel of the object's outline is from the nearest projected point.
 :func:`choose_on_masks` takes the candidate with the lowest score, and among candidates within
 :data:`MASK_TIE` of it the one whose rotation is closest to a preferred one (symmetric shapes score alike at
-their equivalent turns; texture or the smallest turn decides there). Float64; deterministic.
+their equivalent turns; a score such as the colours', texture or the smallest turn decides there). Float64;
+deterministic.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 from scipy.ndimage import binary_erosion, map_coordinates
@@ -98,10 +101,12 @@ def choose_on_masks(
     views2: list[SilhouetteView],
     obj: int,
     prefer: np.ndarray | None = None,
+    rank: Callable[[np.ndarray], float] | None = None,
 ) -> tuple[int, float]:
     """The index of the candidate motion ``[4,4]`` that agrees best with the masks (:func:`mask_cost`;
-    arguments as there), the one whose rotation is closest to ``prefer [3,3]`` (default: no turn) among those
-    within :data:`MASK_TIE` of the best, and its cost."""
+    arguments as there), and its cost. Among the candidates within :data:`MASK_TIE` of the best: the one
+    ``rank`` scores lowest (a score of motions, e.g. :func:`.appearance.colour_score`) when given, and of
+    equally ranked ones the one whose rotation is closest to ``prefer [3,3]`` (default: no turn)."""
     a, b = _points(hull1), _points(hull2)
     v1, v2 = _Views(views1, obj), _Views(views2, obj)
     costs = [_cost(a, b, v1, v2, np.asarray(T, np.float64)) for T in candidates]
@@ -109,5 +114,6 @@ def choose_on_masks(
     best = min(costs)
     prefer = np.eye(3) if prefer is None else np.asarray(prefer, np.float64)
     close = [i for i, c in enumerate(costs) if c <= best * (1.0 + MASK_TIE) or not np.isfinite(best)]
-    i = min(close, key=lambda k: (float(rotation_angle_deg(prefer.T @ candidates[k][:3, :3])), k))
+    ranks = {k: rank(np.asarray(candidates[k], np.float64)) if rank is not None else 0.0 for k in close}
+    i = min(close, key=lambda k: (ranks[k], float(rotation_angle_deg(prefer.T @ candidates[k][:3, :3])), k))
     return i, costs[i]

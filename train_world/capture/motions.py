@@ -11,7 +11,9 @@ turn about the normal (texture still picks among a symmetric shape's equivalent 
 which the masks fix to about a millimetre, give the translation; when one hull is clearly larger than the other
 (another object hid the object from views that would have carved it), the smaller is fitted inside the larger
 instead (:func:`.silhouettes.fit_into_larger`). An object without usable features (a plain
-ball) gets the hull fit that agrees best with its masks, the smallest turn among equally good ones. An object
+ball) gets the hull fit that agrees best with its masks; among equally good ones the one whose colours agree
+best when the photos are given (:func:`.appearance.colour_score`: under light that moves with the camera a
+plain object's shading still tells its turns apart), else the smallest turn. An object
 with texture (features found) then has its turn refined by its colours (:mod:`.appearance`) when the photos
 are given, starting from whichever of the turns its hulls cannot tell apart (:func:`.silhouettes.symmetric_fits`:
 a ball's every turn, a prism's sides, upside down) its colours agree with best.
@@ -25,7 +27,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from train_world.capture.alignment import umeyama
-from train_world.capture.appearance import AppearanceFit, ColourView, refine_motion_by_appearance
+from train_world.capture.appearance import (
+    AppearanceFit,
+    ColourView,
+    colour_score,
+    refine_motion_by_appearance,
+)
 from train_world.capture.features import ViewFeatures
 from train_world.capture.loader import ObjectInfo
 from train_world.capture.mask_fit import choose_on_masks
@@ -364,9 +371,12 @@ def estimate_object_motion(
             (hull_rms, T), method = fits[i], "silhouettes (features disagreed)"
     elif fm is not None:
         T, method = fm.transform.copy(), "features"
-    elif hull_ok:
+    elif hull_ok:  # no features: the masks choose, and among equally good fits the colours
         fits = hull_fits(h1, h2, step, up)
-        i, _ = choose_on_masks([f for _, f in fits], (h1, step1), (h2, step2), *silhouettes, obj.id)
+        rank = colour_score((h1, step1), (h2, step2), *colours, obj.id) if colours is not None else None
+        i, _ = choose_on_masks(
+            [f for _, f in fits], (h1, step1), (h2, step2), *silhouettes, obj.id, rank=rank
+        )
         (hull_rms, T), method = fits[i], "silhouettes"
     else:
         raise MotionError(

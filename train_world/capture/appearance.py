@@ -306,7 +306,7 @@ class _Photos:
             Ti,
             cfg.min_points,
         )
-        return fwd, bwd  # fmt: skip
+        return fwd, bwd
 
     def cost(self, T: np.ndarray) -> float:
         """Mean robust colour difference of motion ``T [4,4]`` on the photos blurred by ``choice_blur``."""

@@ -11,7 +11,12 @@ ball's rotation is then not scored, a cylinder's only by its axis, a box's and a
 leave their shape unchanged. A patterned object (``dsg-synth`` maps its pattern onto it through a cube texture
 in the object's frame) is also scored modulo only those symmetries that are quarter turns about its axes
 (``rotation_error_mod_texture_deg``): a turn of a dotted ball that shows other dots counts, one that shows the
-same cube-mapped pattern does not (a lower bound where the pattern itself has fewer symmetries).
+same cube-mapped pattern does not (a lower bound where the pattern itself has fewer symmetries). It also
+reports the estimated focal length's error (percent, at the truth's image size).
+
+:func:`with_true_cameras` puts the truth's cameras in place of a structure-from-motion result, so that a capture
+built on them shows what the later steps (table frame, object motions) cost by themselves, apart from what the
+estimated cameras cost them.
 """
 
 from __future__ import annotations
@@ -21,8 +26,9 @@ import numpy as np
 from train_world.capture.alignment import rotation_angle_deg, similarity_matrix, umeyama
 from train_world.capture.cameras import GL_TO_CV
 from train_world.capture.loader import Capture
+from train_world.capture.sfm import SfmResult, StateCamera
 
-__all__ = ["compare_captures", "motion_error", "shape_symmetries", "texture_symmetries"]
+__all__ = ["compare_captures", "motion_error", "shape_symmetries", "texture_symmetries", "with_true_cameras"]
 
 
 def _turn(axis: int, deg: float) -> np.ndarray:
@@ -123,6 +129,57 @@ def _cameras(cap: Capture) -> dict[str, np.ndarray]:
     return out
 
 
+def _focal_error_percent(estimated: Capture, truth: Capture, keys: list[str]) -> float:
+    """Median over the views ``keys`` (``"<state>/<stem>"``) of the estimated focal length's error in percent
+    (x and y averaged, the estimate scaled to the truth's image width)."""
+
+    def focals(cap: Capture) -> dict[str, float]:
+        out = {}
+        for s, v in cap.states.items():
+            Ks = v.Ks.numpy().astype(np.float64)
+            for path, K in zip(v.image_paths, Ks, strict=True):
+                out[f"{s}/{path.stem}"] = (0.5 * (K[0, 0] + K[1, 1]), v.width)
+        return out
+
+    est, gt = focals(estimated), focals(truth)
+    errs = [100.0 * (est[k][0] * gt[k][1] / est[k][1] / gt[k][0] - 1.0) for k in keys]
+    return float(np.median(errs))
+
+
+def with_true_cameras(sfm: SfmResult, truth: Capture) -> SfmResult:
+    """``sfm`` (:func:`.sfm.run_sfm`'s result on ``truth``'s photos) with every registered view's pose and
+    intrinsics replaced by the truth's (a pinhole camera per state; views matched by state and file stem) and
+    its points carried into the truth's frame by the similarity fitted to the camera centres (as
+    :func:`compare_captures` fits it). Raises ``ValueError`` when a registered view has no true camera or fewer
+    than 3 views are shared."""
+    gt = _cameras(truth)
+    missing = sorted(set(sfm.world_to_camera) - set(gt))
+    if missing:
+        raise ValueError(
+            f"no true camera for registered views {missing[:5]}; pass the photos' own ground truth"
+        )
+    keys = sorted(sfm.world_to_camera)
+    if len(keys) < 3:
+        raise ValueError(f"only {len(keys)} registered views; need 3")
+    ce = np.array([np.linalg.inv(sfm.world_to_camera[k])[:3, 3] for k in keys])
+    s, rot, t = umeyama(ce, np.array([gt[k][:3, 3] for k in keys]))
+    cameras = {}
+    for state in sfm.cameras:
+        v = truth.states[state]
+        K = v.Ks[0].numpy().astype(np.float64)
+        cameras[state] = StateCamera("PINHOLE", (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), v.width, v.height)
+    return SfmResult(
+        world_to_camera={k: np.linalg.inv(gt[k]) for k in keys},
+        cameras=cameras,
+        points=sfm.points @ (s * rot).T + t,
+        point_errors=sfm.point_errors,
+        mean_reprojection_error=sfm.mean_reprojection_error,
+        registered=sfm.registered,
+        unregistered=sfm.unregistered,
+        timings=sfm.timings,
+    )
+
+
 def compare_captures(estimated: Capture, truth: Capture, src: str = "state1", dst: str = "state2") -> dict:
     """Errors of ``estimated`` against ``truth`` (module docstring) as a JSON-ready dict."""
     est, gt = _cameras(estimated), _cameras(truth)
@@ -172,5 +229,6 @@ def compare_captures(estimated: Capture, truth: Capture, src: str = "state1", ds
         "camera_centre_error_median_percent_of_radius": float(100 * np.median(centre_err) / radius),
         "camera_rotation_error_median_deg": float(np.median(rot_err)),
         "camera_rotation_error_max_deg": float(rot_err.max()),
+        "focal_error_percent": _focal_error_percent(estimated, truth, keys),
         "objects": objects,
     }

@@ -193,6 +193,7 @@ def build_capture(
     stereo: bool = False,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    reconstruct: Callable[..., SfmResult] = run_sfm,
 ) -> dict:
     """Turn the photo capture ``photos`` into a standard capture at ``out`` (module docstring); returns the
     report written to ``out/report.json``. Bad input raises :class:`PhotoCaptureError` (a ``ValueError``)
@@ -201,7 +202,9 @@ def build_capture(
     Metric scale: ``metres_per_unit``, or ``marker_size`` (the black square's edge in metres of an ArUco
     ``DICT_4X4_50`` marker lying in the scene, id ``marker_id`` or the lowest id seen; :mod:`.marker`).
     ``stereo``: depth maps of every view from multi-view stereo (:mod:`.mvs`); training on the capture then
-    starts from them instead of the table top, hulls and random points."""
+    starts from them instead of the table top, hulls and random points. ``reconstruct``: the structure-from-motion
+    step, called as :func:`.sfm.run_sfm` is (a benchmark passes one that puts known cameras in place,
+    :func:`.compare.with_true_cameras`)."""
     if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
         raise ValueError(f"metres per unit must be a positive number, got {metres_per_unit}")
     if marker_size is not None and not (np.isfinite(marker_size) and marker_size > 0):
@@ -220,7 +223,7 @@ def build_capture(
         staged_directory(out, overwrite=overwrite) as stage,
         tempfile.TemporaryDirectory(prefix=f".{out.name}.work.", dir=out.absolute().parent) as work,
     ):
-        sfm = run_sfm(capture, work, progress=progress, log=say)
+        sfm = reconstruct(capture, work, progress=progress, log=say)
         t = time.perf_counter()
         marker_obs = [] if marker_size is not None else None
         with quiet_colmap():

@@ -23,11 +23,17 @@ from PIL import Image  # noqa: E402
 pytest.importorskip("pycolmap", reason="dsg-capture needs pycolmap (pip install pycolmap==4.2.1)")
 
 from train_world.capture import load_capture  # noqa: E402
-from train_world.capture.compare import compare_captures, shape_symmetries, texture_symmetries  # noqa: E402
+from train_world.capture.compare import (  # noqa: E402
+    compare_captures,
+    shape_symmetries,
+    texture_symmetries,
+    with_true_cameras,
+)
 from train_world.capture.frame import Plane, table_frame  # noqa: E402
 from train_world.capture.motions import MotionError, estimate_object_motion, fit_rigid_ransac  # noqa: E402
 from train_world.capture.photo_capture import build_capture  # noqa: E402
 from train_world.capture.photos import PhotoCaptureError, read_photo_capture  # noqa: E402
+from train_world.capture.sfm import SfmResult, run_sfm  # noqa: E402
 from train_world.capture.silhouettes import SilhouetteView  # noqa: E402
 from train_world.capture.undistort import Undistorter  # noqa: E402
 from train_world.cli import capture as capture_cli  # noqa: E402
@@ -139,6 +145,50 @@ def test_capture_loads_and_matches_ground_truth(photos, estimated):
     assert r["up_axis_error_deg"] < 0.5 and abs(r["table_top_error"]) < 0.006
     z = np.array([p[2, 3] for p in cap.poses["state1"]])
     assert np.all(z > 0) and np.all(z < 0.2)  # object centres just above the table, in units of ~0.8 m
+
+
+def test_true_cameras_replace_the_estimate_and_carry_the_points(photos):
+    truth = load_capture(photos / "ground_truth", ["state1", "state2"], load_depth=False, load_masks=False)
+    assert compare_captures(truth, truth)["focal_error_percent"] == 0.0
+    # a reconstruction in another frame: the truth's cameras moved by a similarity S (scale 0.3)
+    S = np.eye(4)
+    S[:3, :3] = 0.3 * np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    S[:3, 3] = [0.5, -0.2, 1.0]
+    w2c, registered = {}, {}
+    for state, v in truth.states.items():
+        for path, c2w_gl in zip(v.image_paths, v.c2w_opengl, strict=True):
+            c2w = c2w_gl @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL -> OpenCV camera axes
+            moved = S @ c2w
+            moved[:3, :3] /= 0.3
+            w2c[f"{state}/{path.stem}"] = np.linalg.inv(moved)
+        registered[state] = tuple(p.stem for p in v.image_paths)
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    sfm = SfmResult(w2c, {}, pts @ S[:3, :3].T + S[:3, 3], np.zeros(50), 0.2, registered, {})
+    exact = with_true_cameras(sfm, truth)
+    assert np.allclose(exact.points, pts, atol=1e-6)  # carried back into the truth's frame
+    key = next(iter(w2c))
+    c2w_true = truth.states["state1"].c2w_opengl[0] @ np.diag([1.0, -1.0, -1.0, 1.0])
+    assert np.allclose(np.linalg.inv(exact.world_to_camera[key]), c2w_true, atol=1e-9)
+    w2c["state1/not_a_view"] = np.eye(4)
+    with pytest.raises(ValueError, match="no true camera for registered views"):
+        with_true_cameras(SfmResult(w2c, {}, pts, np.zeros(50), 0.2, registered, {}), truth)
+
+
+def test_a_capture_on_the_true_cameras_scores_the_motion_step_alone(photos, estimated, tmp_path):
+    truth = load_capture(photos / "ground_truth", ["state1", "state2"], load_depth=False, load_masks=False)
+    est = compare_captures(load_capture(estimated[0], load_masks=False), truth)
+    assert 0.0 < abs(est["focal_error_percent"]) < 3.0  # structure from motion's focal length, a little off
+
+    def reconstruct(capture, work, **kw):
+        return with_true_cameras(run_sfm(capture, work, **kw), truth)
+
+    build_capture(photos, tmp_path / "exact", progress=False, reconstruct=reconstruct)
+    r = compare_captures(load_capture(tmp_path / "exact", load_masks=False), truth)
+    assert r["camera_centre_error_max"] < 1e-4 * r["scene_radius"]
+    assert r["camera_rotation_error_max_deg"] < 1e-3 and abs(r["focal_error_percent"]) < 1e-3
+    for o in r["objects"]:
+        assert o["position_error"] < OBJECT_POS_TOL_M, o
+        assert o["rotation_error_mod_symmetry_deg"] < OBJECT_ROT_TOL_DEG, o
 
 
 def _copy(photos: Path, tmp: Path) -> Path:

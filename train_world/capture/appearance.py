@@ -280,33 +280,15 @@ class _Photos:
     def terms(self, T: np.ndarray, blur: float) -> tuple[_Terms, _Terms]:
         """Both directions' residual terms of motion ``T [4,4]`` on the photos blurred by ``blur``."""
         cfg, (i1, i2), Ti = self.cfg, self.level(blur), np.linalg.inv(T)
-        fwd = _Terms(
-            self.views1,
-            self.views2,
-            i1,
-            i2,
-            self.obj,
-            self.X1,
-            self.N1,
-            self.s1,
-            _pairs(self.views1, self.views2, T, self.c1, cfg.max_pair_angle_deg),
-            T,
-            cfg.min_points,
+        sides = (
+            (self.views1, self.views2, i1, i2, self.X1, self.N1, self.s1, self.c1, T),
+            (self.views2, self.views1, i2, i1, self.X2, self.N2, self.s2, self.c2, Ti),
         )
-        bwd = _Terms(
-            self.views2,
-            self.views1,
-            i2,
-            i1,
-            self.obj,
-            self.X2,
-            self.N2,
-            self.s2,
-            _pairs(self.views2, self.views1, Ti, self.c2, cfg.max_pair_angle_deg),
-            Ti,
-            cfg.min_points,
-        )
-        return fwd, bwd
+        out = []
+        for va, vb, ia, ib, X, N, step, c, M in sides:
+            pairs = _pairs(va, vb, M, c, cfg.max_pair_angle_deg)
+            out.append(_Terms(va, vb, ia, ib, self.obj, X, N, step, pairs, M, cfg.min_points))
+        return out[0], out[1]
 
     def cost(self, T: np.ndarray) -> float:
         """Mean robust colour difference of motion ``T [4,4]`` on the photos blurred by ``choice_blur``."""

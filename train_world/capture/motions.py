@@ -348,10 +348,8 @@ def estimate_object_motion(
             )
     (h1, step1, n1), (h2, step2, n2) = hulls
     vols = (len(h1), len(h2))
-    hull_ok = min(vols) >= MIN_HULL_VOXELS and (
-        max(vols[0] * step1**3, vols[1] * step2**3)
-        <= MAX_HULL_RATIO * min(vols[0] * step1**3, vols[1] * step2**3)
-    )
+    volume1, volume2 = vols[0] * step1**3, vols[1] * step2**3
+    hull_ok = min(vols) >= MIN_HULL_VOXELS and max(volume1, volume2) <= MAX_HULL_RATIO * min(volume1, volume2)
     fm, matches = estimate_feature_motion(features[0], features[1], obj.id, max_error_px, seed)
     hull_rms = float("nan")
     step, up = max(step1, step2), np.asarray(plane[0], np.float64)
@@ -384,9 +382,7 @@ def estimate_object_motion(
             f"both) and its silhouettes do not agree between the states (hull voxels {vols[0]} vs {vols[1]}); "
             "check that its id marks the same object in both states' masks, give it texture, or take more photos"
         )
-    inflated = hull_ok and max(vols[0] * step1**3, vols[1] * step2**3) > HULL_INFLATED * min(
-        vols[0] * step1**3, vols[1] * step2**3
-    )
+    inflated = hull_ok and max(volume1, volume2) > HULL_INFLATED * min(volume1, volume2)
     if inflated:  # one hull is larger than the object: the smaller inside it
         T = fit_into_larger(h1, h2, step, T)
         method += " (hull inflated)"
@@ -401,7 +397,7 @@ def estimate_object_motion(
         if appearance.accepted:
             T, method = appearance.transform, method + "+appearance"
     centre = h1.mean(axis=0) if hull_ok else fm.points.mean(axis=0)
-    if inflated and vols[0] * step1**3 > vols[1] * step2**3:  # the second state's hull is the truer shape
+    if inflated and volume1 > volume2:  # the second state's hull is the truer shape
         centre = np.linalg.solve(T[:3, :3], h2.mean(axis=0) - T[:3, 3])
     return ObjectMotion(
         transform=T,

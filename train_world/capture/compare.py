@@ -133,7 +133,7 @@ def _focal_error_percent(estimated: Capture, truth: Capture, keys: list[str]) ->
     """Median over the views ``keys`` (``"<state>/<stem>"``) of the estimated focal length's error in percent
     (x and y averaged, the estimate scaled to the truth's image width)."""
 
-    def focals(cap: Capture) -> dict[str, float]:
+    def focals(cap: Capture) -> dict[str, tuple[float, int]]:
         out = {}
         for s, v in cap.states.items():
             Ks = v.Ks.numpy().astype(np.float64)

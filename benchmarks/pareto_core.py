@@ -306,6 +306,7 @@ def render_error(world: WorldModel, test: TestStates, point: Point) -> dict:
         s,
         background_color=bgc,
         **world.splat_options,
+        compositing=world.compositing,
         **point.render_settings.kwargs(),
     )
     k = world.num_objects

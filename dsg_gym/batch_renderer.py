@@ -18,6 +18,7 @@ import numpy as np
 from .scene_renderer import RenderOutput, SceneRenderer
 from .splat import numba_batch as batch
 from .splat import numba_incremental as incr
+from .splat import numba_layers as layers
 from .splat import numba_rigid as rigid
 from .splat.threads import ThreadChooser, parallel_allowed
 
@@ -114,13 +115,22 @@ class BatchSceneRenderer:
             )
             bg_rec, bg_rect, bg_rows = r._background_lists(layout)
             bg_out, bg_T = r.background_render(layout)
-            threads = nb.get_num_threads() if par else 1
-            plan = incr.plan_tiles(tiles, r._bg_bins[0], b_off, True, threads)
-            composite = incr.composite_merged if par else incr.composite_merged_serial
-            tails = r.background_tails(layout, tiles[b_off[tiles + 1] > b_off[tiles]], par)
-            composite(*plan, bg_rec, bg_rect, bg_rows, r._bg_bins[0], st["m2"], st["conics"], st["opac"], st["colors"],
-                      st["rects"], st["depths"], b_off, b_gauss, r.tiles_x, r.tiles_y, r.width, r.height, r._consts,
-                      True, bg_out, bg_T, *tails, st["out"], st["T"])  # fmt: skip
+            objects = (st["m2"], st["conics"], st["opac"], st["colors"], st["rects"], st["depths"])
+            if r.layers:
+                if "obj_out" not in st:
+                    st["obj_out"], st["obj_T"] = np.zeros_like(st["out"]), np.ones_like(st["T"])
+                layers.composite_layers(tiles, par, (r.tiles_x, r.tiles_y, r.width, r.height), r._consts, objects,
+                                        (b_off, b_gauss), (bg_out, bg_T, bg_rec, bg_rect, bg_rows),
+                                        r.blank_layer(layout), layout[3], (st["obj_out"], st["obj_T"]),
+                                        (st["out"], st["T"]))  # fmt: skip
+            else:
+                threads = nb.get_num_threads() if par else 1
+                plan = incr.plan_tiles(tiles, r._bg_bins[0], b_off, True, threads)
+                composite = incr.composite_merged if par else incr.composite_merged_serial
+                tails = r.background_tails(layout, tiles[b_off[tiles + 1] > b_off[tiles]], par)
+                composite(*plan, bg_rec, bg_rect, bg_rows, r._bg_bins[0], *objects, b_off, b_gauss, r.tiles_x,
+                          r.tiles_y, r.width, r.height, r._consts, True, bg_out, bg_T, *tails, st["out"],
+                          st["T"])  # fmt: skip
             incr.finish_tiles(tiles, r.tiles_x, r.tiles_y, r.width, r.height, st["out"], st["T"], r.background_color,
                               layout[1], layout[2], K + 1, layout[3], st["rgb"], st["mask"], st["depth"],
                               st["alpha"])  # fmt: skip
@@ -130,5 +140,5 @@ class BatchSceneRenderer:
         img = (E, V, r.height, r.width)
         return RenderOutput(rgb=st["rgb"].reshape(img + (3,)).copy() if layout[1] >= 0 else None,
                             mask=st["mask"].reshape(img).copy() if layout[2] >= 0 else None,
-                            depth=st["depth"].reshape(img).copy() if layout[3] >= 0 else None,
+                            depth=st["depth"].reshape(img).copy() if depth else None,
                             alpha=st["alpha"].reshape(img).copy())  # fmt: skip

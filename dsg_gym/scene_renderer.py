@@ -26,12 +26,13 @@ import numpy as np
 from .gaussians import GaussianSet
 from .splat import numba_bins as binning
 from .splat import numba_incremental as incr
+from .splat import numba_layers as layers
 from .splat import numba_project as projection
 from .splat import numba_raster as raster
 from .splat import numba_rigid as rigid
 from .splat import numba_tails as ntails
 from .splat.threads import ThreadChooser, min_parallel_work, parallel_allowed
-from .splat_options import DEFAULT_EPS2D, check_splat_options
+from .splat_options import DEFAULT_EPS2D, check_compositing, check_splat_options
 
 _FIXED_WORK = 8  # a render's fixed cost (projection, binning, Python) in units of one recomposited tile
 _NO_TAILS: dict[int, tuple] = {}  # channel count -> the composite kernels' empty tail arguments (read-only)
@@ -161,6 +162,10 @@ class SceneRenderer:
             built the first time an object reaches the tile); faster. The images differ from the exact merge
             only where the ``t_min`` cut-off falls differently (with ``t_min`` 0: float32 rounding); see
             docs/renderer.md. Memory: up to (D + 1) KiB per checkpoint, D the composited channels.
+        compositing: "sorted" (default: one depth-sorted list per tile) or "layers": the background and the
+            objects are splatted apart and merged per pixel by expected depth (:mod:`dsg_gym.splat.layers`;
+            ``World.compositing`` says which a world was trained with). With layers a recomposited tile splats
+            only the objects and merges them with the background-only render; ``tail_stride`` is not used.
         parallel: run the kernels on numba's threads. ``None``: where threads are allowed (a main process,
             not one started by ``multiprocessing`` such as a vector-env worker), each render takes the threaded
             or the single-threaded kernels, whichever has been faster lately
@@ -175,8 +180,9 @@ class SceneRenderer:
                  height: int, background_color=(0.0, 0.0, 0.0), near_plane: float = 0.01,
                  far_plane: float = 1e10, alpha_min: float = raster.ALPHA_MIN, t_min: float = raster.T_MIN,
                  sh_degree: int | None = None, rasterize_mode: str = "classic", eps2d: float = DEFAULT_EPS2D,
-                 tail_stride: int = 0, parallel: bool | None = None):
+                 tail_stride: int = 0, parallel: bool | None = None, compositing: str = "sorted"):
         self.rasterize_mode, self.eps2d = check_splat_options(rasterize_mode, eps2d)
+        self.layers = check_compositing(compositing) == "layers"
         if parallel not in (None, True, False):
             raise ValueError(f"parallel must be None, True or False, got {parallel!r}")
         self.parallel = parallel
@@ -256,7 +262,9 @@ class SceneRenderer:
 
     # ----------------------------------------------------------------------------------------
     def _channels(self, rgb: bool, mask: bool, depth: bool) -> tuple[int, int, int, int]:
-        """(D, rgb offset, mask offset, depth offset); offset -1 when absent."""
+        """(D, rgb offset, mask offset, depth offset); offset -1 when absent. Two layers always composite depth
+        (their merge reads it)."""
+        depth = depth or self.layers
         d = 0
         offs = []
         for want, n in ((rgb, 3), (mask, self.K + 1), (depth, 1)):
@@ -344,7 +352,7 @@ class SceneRenderer:
             tiles = np.arange(self.V * self.tiles_x * self.tiles_y, dtype=np.int64)
         else:
             tiles = np.flatnonzero(dirty.reshape(-1)).astype(np.int64)
-        if incremental and "bg_out" not in st:
+        if (incremental or self.layers) and "bg_out" not in st:
             st["bg_out"], st["bg_T"] = self.background_render(layout)
         if tiles.size:
             if dirty is None:
@@ -354,20 +362,47 @@ class SceneRenderer:
                 b_off, b_gauss = incr.bin_tiles(st["proj"].depths.view(np.uint32), st["proj"].rects, dirty,
                                              self.tiles_x, self.tiles_y, self._slices, active)
             b = st["proj"]
-            # incremental: pixels that no object reaches come from the background-only render
-            cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
-            threads = nb.get_num_threads() if par else 1
-            plan = incr.plan_tiles(tiles, self._bg_bins[0], b_off, bool(incremental), threads)
-            tails = self.background_tails(layout, tiles[b_off[tiles + 1] > b_off[tiles]], par) if incremental \
-                else self._no_tails(layout)
-            composite(*plan, st["bg_rec"], st["bg_rect"], st["bg_rows"], self._bg_bins[0], b.means2d, b.conics,
-                      st["opac"], st["colors"], b.rects, b.depths, b_off, b_gauss, self.tiles_x, self.tiles_y, self.width,
-                      self.height, self._consts, bool(incremental), *cache, *tails, st["out"], st["T"])
+            if self.layers:
+                self._composite_layers(st, layout, tiles, (b_off, b_gauss), par)
+            else:
+                # incremental: pixels that no object reaches come from the background-only render
+                cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
+                threads = nb.get_num_threads() if par else 1
+                plan = incr.plan_tiles(tiles, self._bg_bins[0], b_off, bool(incremental), threads)
+                tails = self.background_tails(layout, tiles[b_off[tiles + 1] > b_off[tiles]], par) if incremental \
+                    else self._no_tails(layout)
+                composite(*plan, st["bg_rec"], st["bg_rect"], st["bg_rows"], self._bg_bins[0], b.means2d, b.conics,
+                          st["opac"], st["colors"], b.rects, b.depths, b_off, b_gauss, self.tiles_x, self.tiles_y,
+                          self.width, self.height, self._consts, bool(incremental), *cache, *tails, st["out"], st["T"])
         self._state = st
         self.last_dirty_tiles = int(tiles.size)
-        out = self._outputs(st, layout, tiles)
+        out = self._outputs(st, layout, tiles, depth)
         self.threads.record(par, time.perf_counter() - t0, tiles.size + _FIXED_WORK)
         return out
+
+    def _composite_layers(self, st, layout, tiles, bins, par: bool) -> None:
+        """Two layers: the objects alone on ``tiles``, merged with the background-only render."""
+        if "obj_out" not in st:
+            st["obj_out"], st["obj_T"] = np.zeros_like(st["out"]), np.ones_like(st["T"])
+        b = st["proj"]
+        layers.composite_layers(tiles, par, (self.tiles_x, self.tiles_y, self.width, self.height), self._consts,
+                                (b.means2d, b.conics, st["opac"], st["colors"], b.rects, b.depths), bins,
+                                (st["bg_out"], st["bg_T"], st["bg_rec"], st["bg_rect"], st["bg_rows"]),
+                                self.blank_layer(layout), layout[3], (st["obj_out"], st["obj_T"]),
+                                (st["out"], st["T"]))
+
+    def blank_layer(self, layout) -> tuple[np.ndarray, np.ndarray]:
+        """An empty layer for every camera (colours 0 ``[V,H,W,D]``, transmittance 1 ``[V,H,W]``; read-only), where
+        the objects' layer starts (:func:`dsg_gym.splat.numba_layers.composite_layers`)."""
+        D = max(layout[0], 1)
+        blank = getattr(self, "_blank", None)
+        if blank is None or blank[0].shape != (self.V, self.height, self.width, D):
+            blank = (np.zeros((self.V, self.height, self.width, D), np.float32),
+                     np.ones((self.V, self.height, self.width), np.float32))
+            for a in blank:
+                a.flags.writeable = False
+            self._blank = blank
+        return blank
 
     def _parallel(self) -> bool:
         """Threads for this render: as ``parallel`` says, or (``None``) as :attr:`threads` chooses."""
@@ -451,8 +486,8 @@ class SceneRenderer:
             raise RuntimeError("nothing rendered yet")
         return self._state["out"], self._state["T"]
 
-    def _outputs(self, st, layout, tiles) -> RenderOutput:
-        """Update the output images on the recomposited tiles; return copies."""
+    def _outputs(self, st, layout, tiles, want_depth: bool) -> RenderOutput:
+        """Update the output images on the recomposited tiles; return copies (depth when ``want_depth``)."""
         D, o_rgb, o_mask, o_depth = layout
         shape = (self.V, self.height, self.width)
         if "rgb" not in st:
@@ -465,4 +500,4 @@ class SceneRenderer:
                        st["depth"], st["alpha"])
         return RenderOutput(rgb=st["rgb"].copy() if o_rgb >= 0 else None,
                             mask=st["mask"].copy() if o_mask >= 0 else None,
-                            depth=st["depth"].copy() if o_depth >= 0 else None, alpha=st["alpha"].copy())
+                            depth=st["depth"].copy() if want_depth else None, alpha=st["alpha"].copy())

@@ -2,16 +2,24 @@
 
 ``rasterize_mode``: "classic" (3DGS) or "antialiased" (Mip-Splatting's 2D Mip filter, gsplat's name);
 ``eps2d``: the low-pass in px^2 added to each projected 2D covariance (3DGS and gsplat: 0.3). See
-:func:`dsg_gym.splat.rasterize`.
+:func:`dsg_gym.splat.rasterize`. ``compositing``: "sorted" (one depth-sorted list per tile, 3DGS) or "layers"
+(background and objects splatted apart and merged per pixel by expected depth: :mod:`dsg_gym.splat.layers`).
 """
 
 from __future__ import annotations
 
 import math
 
-__all__ = ["DEFAULT_EPS2D", "RASTERIZE_MODES", "check_splat_options"]
+__all__ = [
+    "COMPOSITING_MODES",
+    "DEFAULT_EPS2D",
+    "RASTERIZE_MODES",
+    "check_compositing",
+    "check_splat_options",
+]
 
 RASTERIZE_MODES = ("classic", "antialiased")
+COMPOSITING_MODES = ("sorted", "layers")
 DEFAULT_EPS2D = 0.3
 
 
@@ -26,3 +34,10 @@ def check_splat_options(rasterize_mode, eps2d) -> tuple[str, float]:
     ):
         raise ValueError(f"eps2d must be a number in (0, 10] px^2, got {eps2d!r}")
     return str(rasterize_mode), float(eps2d)
+
+
+def check_compositing(mode) -> str:
+    """``mode`` when it is one of :data:`COMPOSITING_MODES`; else ValueError naming it."""
+    if mode not in COMPOSITING_MODES:
+        raise ValueError(f"compositing must be one of {COMPOSITING_MODES}, got {mode!r}")
+    return str(mode)

@@ -50,7 +50,7 @@ from .gaussians import GaussianSet
 from .io.atomic import atomic_write_bytes, remove_partial
 from .poses import quat_multiply, quat_normalize, rotmat_to_quat
 from .sh_basis import rotate_sh
-from .splat_options import DEFAULT_EPS2D, check_splat_options
+from .splat_options import DEFAULT_EPS2D, check_compositing, check_splat_options
 from .world_header import check_doc, tensor_entry
 
 __all__ = [
@@ -61,6 +61,7 @@ __all__ = [
     "WorldFormatError",
     "WorldObject",
     "build_world",
+    "compositing",
     "encode_world",
     "load_world",
     "parse_world_bytes",
@@ -121,6 +122,12 @@ class World:
         """Keyword arguments every renderer of this world needs (``rasterize`` / ``SceneRenderer``): the
         ``rasterize_mode`` and 2D low-pass ``eps2d`` (px^2) it was trained with (defaults: 3DGS's)."""
         return splat_options(self.metadata)
+
+    @property
+    def compositing(self) -> str:
+        """How background and objects are composited: "sorted" (one depth-sorted list, 3DGS; the default) or
+        "layers" (each splatted alone and merged per pixel by expected depth: :mod:`dsg_gym.splat.layers`)."""
+        return compositing(self.metadata)
 
     @property
     def object_ids(self) -> tuple[int, ...]:
@@ -184,6 +191,15 @@ def transform_gaussians(g: GaussianSet, T: np.ndarray, label: int | None = None)
 
 
 # ----------------------------------------------------------------------------------- reading
+
+
+def compositing(metadata: Mapping[str, Any]) -> str:
+    """``metadata["compositing"]`` (absent: "sorted"); WorldFormatError when it is not one of
+    :data:`dsg_gym.splat_options.COMPOSITING_MODES`."""
+    try:
+        return check_compositing(metadata.get("compositing", "sorted"))
+    except ValueError as e:
+        raise WorldFormatError(f"world metadata: {e}") from None
 
 
 def splat_options(metadata: Mapping[str, Any]) -> dict[str, Any]:
@@ -286,6 +302,7 @@ def _build(arrays: dict[str, np.ndarray], doc: dict, version: int) -> World:
             raise ValueError(f"tensors cameras/{s}/*: {e}") from None
     meta = doc.get("metadata", {})
     splat_options(meta)  # validates
+    compositing(meta)
     weight, bias = _tensor(arrays, "classifier/weight"), _tensor(arrays, "classifier/bias")
     k = len(objects)
     for s, P in poses.items():

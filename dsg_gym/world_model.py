@@ -20,7 +20,7 @@ import numpy as np
 from .cameras import Cameras
 from .gaussians import GaussianSet
 from .poses import as_poses7, pose7_to_matrix
-from .world import load_world, splat_options
+from .world import compositing, load_world, splat_options
 from .world import transform_gaussians as _transform_matrix
 
 __all__ = ["TableBounds", "WORKSPACE_HEIGHT", "Workspace", "WorldModel", "WorldModelError"]
@@ -170,6 +170,12 @@ class WorldModel:
     def splat_options(self) -> dict[str, Any]:
         """Renderer keyword arguments the world was trained with (:attr:`dsg_gym.world.World.splat_options`)."""
         return splat_options(self.metadata)
+
+    @property
+    def compositing(self) -> str:
+        """How the world composites background and objects ("sorted" or "layers",
+        :attr:`dsg_gym.world.World.compositing`); every renderer of the world must use it."""
+        return compositing(self.metadata)
 
     @property
     def workspace(self) -> Workspace:

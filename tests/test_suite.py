@@ -42,11 +42,12 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
             "--mip",
             "--support-weight",
             "0.25",
+            "--layers",
         ]
     )
     assert rc == 0
     table = json.loads((out / "table.json").read_text())
-    assert table["support_weight"] == 0.25
+    assert table["support_weight"] == 0.25 and table["layers"] is True
     runs = table["scenes"]["two_blocks"]
     assert set(runs) == {"a", "b", "BC", "BCP"}
     for m, r in runs.items():
@@ -55,6 +56,10 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
     wdir = out / "worlds" / "two_blocks"
     assert table["mip"] is True  # every world trained (or derived) with the Mip-Splatting filters
     assert load_world(wdir / "BCP.dsgworld").metadata["dual"]["support_weight"] == 0.25
+    assert (
+        load_world(wdir / "BCP.dsgworld").compositing == "layers" and runs["BCP"]["train"]["layers"] is True
+    )
+    assert load_world(wdir / "a.dsgworld").compositing == "sorted"  # the baselines are not ours
     assert all(
         load_world(wdir / f"{m}.dsgworld").splat_options == {"rasterize_mode": "antialiased", "eps2d": 0.1}
         for m in runs
@@ -97,6 +102,7 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
                 "40",
                 "--support-weight",
                 "0.25",
+                "--layers",
             ]
         )
         == 0
@@ -107,6 +113,8 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
 
     with pytest.raises(ValueError, match=r"trained with --support-weight 0.25, this run asks for 0.0"):
         run_suite(out, ["two_blocks"], ["BC", "BCP"], preset="quick", iterations=40)
+    with pytest.raises(ValueError, match=r"trained with --layers, this run is without it"):
+        run_suite(out, ["two_blocks"], ["BC", "BCP"], preset="quick", iterations=40, support_weight=0.25)
     assert {m: (wdir / f"{m}.dsgworld").stat().st_mtime_ns for m in runs} == before
     # a training killed after its last checkpoint continues from it: nothing is retrained, same world
     for m in ("a", "BCP"):
@@ -133,6 +141,7 @@ def test_suite_runs_baselines_and_shared_phase_ablations(tmp_path):
                     "--mip",
                     "--support-weight",
                     "0.25",
+                    "--layers",
                 ]
             )
             == 0

@@ -270,7 +270,7 @@ class DSGWorldEnv(gym.Env):
         w = self.world
         return SceneRenderer(
             w.background, list(w.objects), cams.viewmats, cams.Ks, cams.width, cams.height,
-            background_color=self.background_color, **w.splat_options,
+            background_color=self.background_color, **w.splat_options, compositing=w.compositing,
             **self.render_settings.kwargs(),
         )  # fmt: skip
 

@@ -24,6 +24,18 @@ def _parser() -> argparse.ArgumentParser:
     steps = get_preset("default").dual_refine_steps
     p.add_argument("--steps", type=int, default=steps, help=f"default {steps}, as dsg-train's default preset")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--support-weight",
+        type=float,
+        default=0.0,
+        metavar="W",
+        help="weight of the support term (default 0: off)",
+    )
+    p.add_argument(
+        "--layers",
+        action="store_true",
+        help="two layers, background and objects merged per pixel by expected depth (the world records it)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -41,7 +53,9 @@ def main(argv: list[str] | None = None) -> int:
         refined, info = refine_world(
             world,
             training_views_of(world, args.capture),
-            RefineConfig(steps=args.steps, seed=args.seed),
+            RefineConfig(
+                steps=args.steps, seed=args.seed, support_weight=args.support_weight, layers=args.layers
+            ),
             progress=not args.quiet,
         )
         write_world(args.out, refined)

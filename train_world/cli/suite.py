@@ -56,6 +56,11 @@ def _parser() -> argparse.ArgumentParser:
         help="weight of the support term of ours (dsg-train --support-weight; default: dsg-train's, off)",
     )
     p.add_argument(
+        "--layers",
+        action="store_true",
+        help="ours refined and rendered in two layers, background and objects (dsg-train --layers)",
+    )
+    p.add_argument(
         "--max-gaussians",
         type=int,
         help="cap on each field's Gaussian count, baseline (a) too (default: the preset's two-state cap)",
@@ -146,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
         return run_suite(out, _scene_list(args.scenes), methods, preset=args.preset, iterations=args.iterations,
                          synth_args=synth, seed=seed, pseudo_every=args.pseudo_every,
                          align_downscale=args.align_downscale, max_gaussians=args.max_gaussians, mip=args.mip,
-                         refine_steps=args.refine_steps, support_weight=args.support_weight)  # fmt: skip
+                         refine_steps=args.refine_steps, support_weight=args.support_weight,
+                         layers=args.layers)  # fmt: skip
 
     try:
         if seeds is not None:

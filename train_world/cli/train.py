@@ -237,6 +237,12 @@ def two_state_parser() -> argparse.ArgumentParser:
         "phase and the refinement (default 0: off; captures with a table and masks only)",
     )
     p.add_argument(
+        "--layers",
+        action="store_true",
+        help="refine and render the world as two layers, background and objects merged per pixel by expected "
+        "depth (the world records it; every renderer follows; see docs/training.md)",
+    )
+    p.add_argument(
         "--refine-steps",
         type=int,
         metavar="N",
@@ -399,6 +405,7 @@ def main_two_state(argv: list[str] | None = None) -> int:
         refine = RefineConfig(
             steps=config.base.preset.dual_refine_steps if args.refine_steps is None else args.refine_steps,
             seed=args.seed,
+            layers=args.layers,
         )
         args.out.parent.mkdir(parents=True, exist_ok=True)
         trainer = DualTrainer(args.capture, config, checkpoint=ckpt)
@@ -464,6 +471,7 @@ def main_two_state(argv: list[str] | None = None) -> int:
         "joint_from_step": trainer.joint_start,
         "holdout_every": config.base.holdout_every,
         **{k: getattr(config, k) for k in JOINT_OPTIONS},
+        "layers": bool(args.layers),
         "training_views": [len(trainer.data1), len(trainer.data2)],
         "gaussians": int(world.metadata["num_gaussians"]),
         "field_sizes": dual["field_sizes"],

@@ -45,6 +45,7 @@ class SelfCheck:
         self.m0 = 10.0 ** (-self.reference_psnr / 10.0)
         self.max_drop = cfg.max_psnr_drop
         self.splat = world.splat_options
+        self.compositing = world.compositing
         self.ref = self._render(world.background, [world.objects[i].gaussians for i in world.object_ids])
 
     def _render(self, bg: GaussianSet, objs: list[GaussianSet]) -> np.ndarray:
@@ -59,6 +60,7 @@ class SelfCheck:
             c.width,
             c.height,
             background_color=self.bg,
+            compositing=self.compositing,
             **self.splat,
         )
         out = np.empty((len(self.poses), len(self.idx), c.height, c.width, 3), np.float32)

@@ -47,7 +47,9 @@ class RefineConfig:
     """``steps``: Adam steps (0: off); learning rates at step 0 (``means`` in scene units, i.e. not scaled by the
     extent), decaying linearly to 0; ``lambda_dssim``: the D-SSIM weight of the loss; ``seed``: view order;
     ``support_weight``: weight of ``L_support`` (:func:`.losses.support_loss`) on the objects' Gaussians at the
-    pose of the state each step renders (0: off; only for worlds whose table top is z = 0)."""
+    pose of the state each step renders (0: off; only for worlds whose table top is z = 0); ``layers``: render
+    the background and the objects as two layers merged per pixel by expected depth
+    (:mod:`dsg_gym.splat.layers`); the refined world then records ``metadata["compositing"] = "layers"``."""
 
     steps: int = 3000
     lr_means: float = 1.6e-5
@@ -59,6 +61,7 @@ class RefineConfig:
     lambda_dssim: float = 0.2
     seed: int = 0
     support_weight: float = 0.0
+    layers: bool = False
 
     def __post_init__(self) -> None:
         if int(self.steps) != self.steps or self.steps < 0:
@@ -178,6 +181,7 @@ def refine_world(
     }
     c = config
     n_bg = world.background.num
+    front = labels > 0 if c.layers or world.metadata.get("compositing") == "layers" else None
     object_poses = {  # each object Gaussian's pose at each state (object frame -> table frame)
         s: gaussian_transforms(labels[n_bg:], np.asarray(world.poses[s], np.float32).reshape(-1, 4, 4))
         for s in views
@@ -213,6 +217,7 @@ def refine_world(
             transform=transfers[s],
             background=bg,
             with_features=False,
+            layers=front,
         )
         loss = photometric_loss(out.rgb, v.images[j : j + 1], c.lambda_dssim)
         if c.support_weight > 0:
@@ -237,6 +242,8 @@ def refine_world(
         "loss_last": float(np.mean(losses[-window:])),
     }
     meta = {**world.metadata, "refine": dict(info)}  # no time in the file: a rerun writes the same bytes
+    if front is not None:
+        meta["compositing"] = "layers"
     info["seconds"] = round(time.perf_counter() - t0, 1)
     objects = {i: WorldObject(world.objects[i].name, g) for i, g in zip(ids, refined[1:])}
     return dataclasses.replace(world, background=refined[0], objects=objects, metadata=meta), info

@@ -38,6 +38,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
@@ -48,6 +49,7 @@ import torch
 
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.splat import rasterize, spherical_harmonics
+from dsg_gym.splat.layers import rasterize_layers
 from dsg_gym.world import World, load_world
 from train_world.capture import load_capture
 from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
@@ -63,6 +65,7 @@ __all__ = [
     "default_state",
     "evaluate",
     "evaluate_test_states",
+    "layer_mask",
     "mask_iou",
     "mean_of_means",
     "render_gaussians",
@@ -94,9 +97,11 @@ def render_gaussians(
     height: int,
     background=(0.0, 0.0, 0.0),
     splat_options: dict | None = None,
+    front: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """RGB ``[V,H,W,3]`` and identity features ``[V,H,W,F]`` of ``g`` (one rasterizer call per view), with the
-    world's ``splat_options`` (``World.splat_options``: rasterize mode and 2D low-pass)."""
+    world's ``splat_options`` (``World.splat_options``: rasterize mode and 2D low-pass). ``front``: boolean
+    ``[N]``, the object Gaussians of a world composited in two layers (:func:`layer_mask`)."""
     t = {
         k: torch.from_numpy(np.ascontiguousarray(getattr(g, k)))
         for k in ("means", "quats", "scales", "opacities", "sh", "features")
@@ -110,7 +115,8 @@ def render_gaussians(
         campos = torch.linalg.inv(vm)[:3, 3]
         rgb = torch.clamp_min(spherical_harmonics(g.sh_degree, t["means"] - campos, t["sh"]) + 0.5, 0.0)
         cols = torch.cat([rgb, t["features"]], -1)
-        out, _, _ = rasterize(
+        splat = rasterize if front is None else functools.partial(rasterize_layers, torch.from_numpy(front))
+        out, _, _ = splat(
             t["means"],
             t["quats"],
             t["scales"],
@@ -126,6 +132,15 @@ def render_gaussians(
         rgbs.append(out[0, ..., :3].numpy())
         feats.append(out[0, ..., 3:].numpy())
     return np.stack(rgbs), np.stack(feats)
+
+
+def layer_mask(world: World) -> np.ndarray | None:
+    """Boolean ``[N]`` over ``world.gaussians()`` (background first), True for the object Gaussians, when the world
+    composites in two layers (``World.compositing``); None for one sorted list."""
+    if world.compositing != "layers":
+        return None
+    n = world.background.num + sum(o.gaussians.num for o in world.objects.values())
+    return np.arange(n) >= world.background.num
 
 
 def _poses_for(
@@ -201,15 +216,15 @@ def evaluate(
     g = world.gaussians(poses=poses) if poses is not None else world.gaussians(state=trained_state)
     viewmats = views.viewmats.numpy() if alignment is None else alignment.viewmats(views.viewmats.numpy())
     aligned = None
+    front = layer_mask(world)
+    render = functools.partial(render_gaussians, front=front)
     if view_alignment is not None:
         aligned = align_views(
             g, viewmats, views.Ks.numpy(), views.width, views.height, views.images.numpy(), bg,
-            world.splat_options, view_alignment, render_gaussians,
+            world.splat_options, view_alignment, render_gaussians, front,
         )  # fmt: skip
         viewmats = np.stack([a.viewmat for a in aligned])
-    rgb, feats = render_gaussians(
-        g, viewmats, views.Ks.numpy(), views.width, views.height, bg, world.splat_options
-    )
+    rgb, feats = render(g, viewmats, views.Ks.numpy(), views.width, views.height, bg, world.splat_options)
     pred_cls = world.classify(feats).argmax(-1) if world.num_objects else None
     gt_imgs = views.images.numpy()
     gt_cls = None if views.classes is None else views.classes.numpy()

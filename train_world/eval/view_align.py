@@ -22,6 +22,7 @@ the given pose stays. Deterministic: a fixed number of steps, no randomness.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass
 
@@ -31,6 +32,7 @@ import torch
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.geometry import axis_angle_to_quat, quat_multiply, quat_to_rotmat, rotmat_to_quat
 from dsg_gym.splat import rasterize, spherical_harmonics
+from dsg_gym.splat.layers import rasterize_layers
 
 __all__ = ["AlignedView", "ViewAlignment", "align_view", "align_views", "correction_matrix"]
 
@@ -112,6 +114,7 @@ def align_view(
     background=(0.0, 0.0, 0.0),
     splat_options: dict | None = None,
     config: ViewAlignment = ViewAlignment(),
+    front: np.ndarray | None = None,
 ) -> AlignedView:
     """Align one camera to the world ``g`` against its image (module docstring).
 
@@ -123,6 +126,7 @@ def align_view(
         render: ``render(viewmat [4,4]) -> rgb [H,W,3]``, the exact render the evaluation scores.
         background, splat_options: as the world renders (``World.splat_options``).
         config: steps and learning rates.
+        front: boolean ``[N]``, the object Gaussians of a world composited in two layers (None: one list).
     """
     vm = np.asarray(viewmat, dtype=np.float64)
     target64 = np.asarray(target, dtype=np.float64)
@@ -143,10 +147,11 @@ def align_view(
         rgb = torch.clamp_min(spherical_harmonics(g.sh_degree, means_w - campos, sh) + 0.5, 0.0)
     scales = torch.from_numpy(np.ascontiguousarray(g.scales, dtype=np.float32))
     opac = torch.from_numpy(np.ascontiguousarray(g.opacities, dtype=np.float32))
-    front = means_c[:, 2] > 0
-    depth = float(torch.median(means_c[front, 2])) if bool(front.any()) else 1.0
+    ahead = means_c[:, 2] > 0
+    depth = float(torch.median(means_c[ahead, 2])) if bool(ahead.any()) else 1.0
     eye, Kt = torch.eye(4)[None], torch.from_numpy(np.asarray(K, dtype=np.float32))[None]
     bg = torch.tensor(background, dtype=torch.float32)
+    splat = rasterize if front is None else functools.partial(rasterize_layers, torch.from_numpy(front))
     w = torch.zeros(3, dtype=torch.float64, requires_grad=True)
     u = torch.zeros(3, dtype=torch.float64, requires_grad=True)
     lr_u = config.lr_translation * depth
@@ -159,7 +164,7 @@ def align_view(
         qd = axis_angle_to_quat(w)
         m = means_c @ quat_to_rotmat(qd).T + u
         q = quat_multiply(qd.expand(g.num, 4), quats_c)
-        out, _, _ = rasterize(
+        out, _, _ = splat(
             m.float(), q.float(), scales, opac, rgb, eye, Kt, int(width), int(height), backgrounds=bg,
             **(splat_options or {}),
         )  # fmt: skip
@@ -194,14 +199,18 @@ def align_views(
     splat_options: dict | None,
     config: ViewAlignment,
     render_gaussians,
+    front: np.ndarray | None = None,
 ) -> list[AlignedView]:
     """:func:`align_view` for every camera: ``viewmats [V,4,4]``, ``Ks [V,3,3]``, ``images [V,H,W,3]``;
-    ``render_gaussians`` is :func:`train_world.eval.evaluate.render_gaussians` (the exact render)."""
+    ``render_gaussians`` is :func:`train_world.eval.evaluate.render_gaussians` (the exact render); ``front`` as
+    :func:`align_view`'s."""
     out = []
     for vm, K, img in zip(np.asarray(viewmats), np.asarray(Ks), np.asarray(images)):
 
         def render(v, K=K):
-            return render_gaussians(g, v[None], K[None], width, height, background, splat_options)[0][0]
+            return render_gaussians(
+                g, v[None], K[None], width, height, background, splat_options, front=front
+            )[0][0]
 
-        out.append(align_view(g, vm, K, width, height, img, render, background, splat_options, config))
+        out.append(align_view(g, vm, K, width, height, img, render, background, splat_options, config, front))
     return out

@@ -19,6 +19,7 @@ runtime needs only the 2D mode. Densification sees the unfiltered parameters (as
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -30,6 +31,7 @@ from torch import nn
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.geometry import quat_multiply, rotmat_to_quat
 from dsg_gym.splat import rasterize, spherical_harmonics
+from dsg_gym.splat.layers import rasterize_layers
 from dsg_gym.splat_options import DEFAULT_EPS2D, check_splat_options
 
 __all__ = [
@@ -282,6 +284,7 @@ class SegmentedField(nn.Module):
         mask: torch.Tensor | None = None,
         with_depth: bool = False,
         absgrad: bool = False,
+        layers: torch.Tensor | None = None,
     ) -> RenderOutput:
         """Render RGB (+ identity features) into ``C`` cameras in one rasterizer call.
 
@@ -292,13 +295,17 @@ class SegmentedField(nn.Module):
         the field's maximum); ``background``: ``[3]`` RGB (features get 0 behind); ``mask``: boolean ``[N]``
         selecting the Gaussians drawn; ``with_depth``: also the accumulated depth (the rasterizer's ``RGB+D``
         mode, ``RenderOutput.depth``; divide by ``alpha`` for the expected depth), differentiable in the means;
-        ``absgrad``: the rasterizer's (absolute 2D mean gradients for densification after ``backward``).
+        ``absgrad``: the rasterizer's (absolute 2D mean gradients for densification after ``backward``);
+        ``layers``: boolean ``[N]``, the object Gaussians: render them and the others as two layers merged per
+        pixel by expected depth (:func:`dsg_gym.splat.layers.rasterize_layers`; ``meta`` is then that
+        function's).
         """
         means, quats = self.means, self.quats
         scales, opac = self.scales_opacities()
         sh, feats = self.sh(), self.features
         if mask is not None:
             means, quats, scales, opac, sh, feats = (t[mask] for t in (means, quats, scales, opac, sh, feats))
+            layers = None if layers is None else layers[mask]
         rot = None  # rotation of each Gaussian by the transform: SH colours turn with the Gaussians
         turn_dirs = None
         if transform is not None:
@@ -328,7 +335,8 @@ class SegmentedField(nn.Module):
             bg = background.to(means.dtype)
             if with_features:
                 bg = torch.cat([bg, bg.new_zeros(feats.shape[1])])
-        out, alpha, meta = rasterize(
+        splat = rasterize if layers is None else functools.partial(rasterize_layers, layers)
+        out, alpha, meta = splat(
             means,
             quats,
             scales,

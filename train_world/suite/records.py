@@ -91,9 +91,16 @@ def refuse_mismatched_worlds(out: Path, scenes: list[str], methods: list[str], t
                     f"{list(have)} (steps, first joint step, refinement steps), this run asks for {list(want)}; "
                     "use another --out, or the matching --iterations / --refine-steps"
                 )
-            for k, v in want_options.items():
+            for k, v in {**want_options, "layers": bool(table.get("layers"))}.items():
                 if k in record and float(record[k]) != float(v):
                     flag = "--" + k.replace("_", "-")
+                    if isinstance(v, bool):
+                        had = "with" if record[k] else "without"
+                        now = "with" if v else "without"
+                        raise ValueError(
+                            f"{scene}/{m}: the world in {info_path.parent} was trained {had} {flag}, this run is "
+                            f"{now} it; use another --out, or run {had} {flag}"
+                        )
                     raise ValueError(
                         f"{scene}/{m}: the world in {info_path.parent} was trained with {flag} {record[k]}, "
                         f"this run asks for {v}; use another --out, or {flag} {record[k]}"

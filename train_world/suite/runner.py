@@ -7,7 +7,7 @@ and peak RSS recorded) and is skipped when its world file exists; a training tha
 checkpoint (``WORLD.ckpt``; its ``train_seconds`` count every part, its ``wall_seconds`` the last), so an
 interrupted suite resumes. A world of ours found there that was trained with another two-state schedule (say,
 another ``--refine-steps``) or other joint-phase options (``--pseudo-every``, ``--align-downscale``,
-``--support-weight``) is refused before anything runs, not reused. Every
+``--support-weight``, ``--layers``) is refused before anything runs, not reused. Every
 world is evaluated with ``dsg-eval`` on every test state of the capture (objects at the test poses, held-out
 cameras); a method's figure per scene is the mean over its test states.
 
@@ -57,7 +57,7 @@ __all__ = ["METHODS", "merge_tables", "run_suite"]
 
 # settings that must agree for runs to share one table
 _SETTINGS = ("preset", "iterations", "mip", "max_gaussians", "synth_args", "seed", "pseudo_every",
-             "align_downscale", "support_weight")  # fmt: skip
+             "align_downscale", "support_weight", "layers")  # fmt: skip
 
 # name -> (label in the table, extra dsg-train options or None for baselines)
 METHODS: dict[str, tuple[str, list[str] | None]] = {
@@ -182,7 +182,7 @@ def _grid_png(
 ):
     from dsg_gym.world import load_world
     from train_world.capture.format import atomic_write_bytes, encode_png
-    from train_world.eval.evaluate import _poses_for, render_gaussians
+    from train_world.eval.evaluate import _poses_for, layer_mask, render_gaussians
     from train_world.eval.report_files import grid as _grid
     from train_world.eval.report_files import u8 as _u8
     from train_world.single_state.data import load_eval_views
@@ -212,6 +212,7 @@ def _grid_png(
             views.height,
             bg,
             w.splat_options,
+            front=layer_mask(w),
         )
     n = min(rows, len(views.images))
     grid = [[_u8(views.images[i].numpy())] + [_u8(renders[m][i]) for m in worlds] for i in range(n)]
@@ -233,10 +234,12 @@ def run_suite(
     mip: bool | None = None,
     refine_steps: int | None = None,
     support_weight: float | None = None,
+    layers: bool = False,
 ) -> dict[str, Any]:
     """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``.
     ``refine_steps``: refinement steps of ours (``dsg-train --refine-steps``; ``None``: the preset's, 0: the
-    paper's method without refinement)."""
+    paper's method without refinement); ``layers``: ours refined and rendered in two layers (``dsg-train
+    --layers``)."""
     from train_world.capture import load_capture
     from train_world.eval.evaluate import evaluate_test_states
     from train_world.single_state.presets import get_preset
@@ -259,6 +262,7 @@ def run_suite(
         "pseudo_every": pseudo_every,
         "align_downscale": align_downscale,
         "support_weight": support_weight,
+        "layers": bool(layers),
         "two_state_schedule": two_state_schedule(preset, iterations, refine_steps),
         "scenes": {},
         "methods": methods,
@@ -321,6 +325,7 @@ def run_suite(
             *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]),
             *([] if align_downscale is None else ["--align-downscale", str(align_downscale)]),
             *([] if support_weight is None else ["--support-weight", repr(float(support_weight))]),
+            *(["--layers"] if layers else []),
             "--resume",
             *it,
             *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))]),

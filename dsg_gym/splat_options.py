@@ -13,6 +13,7 @@ import math
 __all__ = [
     "COMPOSITING_MODES",
     "DEFAULT_EPS2D",
+    "LAYER_MARGIN",
     "RASTERIZE_MODES",
     "check_compositing",
     "check_splat_options",
@@ -20,6 +21,10 @@ __all__ = [
 
 RASTERIZE_MODES = ("classic", "antialiased")
 COMPOSITING_MODES = ("sorted", "layers")
+#: two layers: the objects' layer goes in front at a pixel unless the background's expected depth is nearer by more
+#: than this fraction of it. An object's Gaussians are centred inside it, so at its base, where it meets the table,
+#: its expected depth lies a few millimetres behind its visible surface and within that of the table's.
+LAYER_MARGIN = 0.01
 DEFAULT_EPS2D = 0.3
 
 

@@ -7,6 +7,7 @@ import torch
 
 from dsg_gym.splat import rasterize
 from dsg_gym.splat.layers import merge_layers, rasterize_layers
+from dsg_gym.splat_options import LAYER_MARGIN
 
 
 def _scene(n_front=60, n_back=90, front_z=1.5, back_z=3.0, seed=0):
@@ -65,6 +66,18 @@ def test_merge_puts_the_layer_with_the_smaller_expected_depth_in_front():
     a2 = _pixel([0.5, 0.0, 0.0], 0.5, 0.25)
     col, _, _ = merge_layers(*a2, *b, backgrounds=bg)
     torch.testing.assert_close(col.reshape(3), torch.tensor([0.5, 0.4, 0.1]))
+
+
+def test_the_objects_layer_stays_in_front_within_the_margin():
+    """At an object's base its expected depth lies just behind the table's: within LAYER_MARGIN of it, the objects'
+    layer (a) stays in front; beyond it, the background goes over it."""
+    b = _pixel([0.0, 0.9, 0.0], 0.9, 0.9)  # the table, expected depth 1.0
+    within = _pixel([0.9, 0.0, 0.0], 0.9, 0.9 * (1.0 + 0.5 * LAYER_MARGIN))
+    beyond = _pixel([0.9, 0.0, 0.0], 0.9, 0.9 * (1.0 + 2.0 * LAYER_MARGIN))
+    assert 0 < LAYER_MARGIN < 0.05
+    assert float(merge_layers(*within, *b)[0][..., 0]) == pytest.approx(0.9)  # the object in front
+    assert float(merge_layers(*beyond, *b)[0][..., 0]) == pytest.approx(0.09)  # behind the table
+    assert float(merge_layers(*within, *b, margin=0.0)[0][..., 0]) == pytest.approx(0.09)  # no margin: strict
 
 
 def test_merge_of_an_empty_layer_is_the_other_layer():

@@ -3,10 +3,10 @@
 ``rasterize`` follows gsplat's ``rasterization()`` argument conventions; see its docstring.
 
 Modules: the numba kernels (``numba_project``, ``numba_bins``, ``numba_raster``, ``numba_sh``,
-``numba_incremental``, ``numba_rigid``, ``numba_batch``, ``numba_intrinsics``) are torch-free and shared by the
-runtime renderers (:mod:`dsg_gym.scene_renderer`, :mod:`dsg_gym.batch_renderer`) and training-side tools;
-``rasterize`` (the differentiable training renderer) and the SH helpers need torch, which this package imports only
-when one of those names is first used.
+``numba_incremental``, ``numba_rigid``, ``numba_batch``, ``numba_intrinsics``, ``numba_tails``, ``numba_layers``)
+are torch-free and shared by the runtime renderers (:mod:`dsg_gym.scene_renderer`, :mod:`dsg_gym.batch_renderer`)
+and training-side tools; ``rasterize`` (the differentiable training renderer), ``layers`` (its two-layer form) and
+the SH helpers need torch, which this package imports only when one of those names is first used.
 
 Threads: numba picks its threading layer (TBB when it loads, else OpenMP, else its workqueue;
 ``NUMBA_THREADING_LAYER`` overrides). OpenMP is the fast one on this CPU, but GNU OpenMP does not

@@ -3,8 +3,11 @@
 One depth-sorted list per tile orders Gaussians by their centres' depth. Where a flat background Gaussian
 (the table top) is centred in front of an object's base, it is blended first even at pixels where the base is
 in front of it; at the poses a world was trained at, the fit works around that, at new poses it cannot. Two
-layers avoid it: each layer is splatted alone, and at every pixel the layer with the smaller expected depth
-goes over the other:
+layers avoid it: each layer is splatted alone, and at every pixel the nearer layer goes over the other. The
+objects' layer (``a``) is nearer unless the background's expected depth is smaller than ``1 / (1 + margin)`` of
+the objects' (``margin``: :data:`dsg_gym.splat_options.LAYER_MARGIN`, 1 %). An object's Gaussians are centred
+inside it, so where it stands on the table its expected depth lies a few millimetres behind its visible surface,
+within the table's; without the margin the table would cover the base there:
 
     C = C_near + (1 - a_near) C_far + (1 - a_near)(1 - a_far) bg,    alpha = 1 - (1 - a_near)(1 - a_far)
 
@@ -13,7 +16,7 @@ alphas and the expected depth ``D / a`` (``D``: accumulated depth). A layer with
 (``a`` below ``1e-6``) is infinitely far there. The choice of the near layer is not differentiated; gradients
 flow through both layers' colours and alphas.
 
-A world records this with ``metadata["compositing"] = "layers"`` (``dsg_gym.world_header.compositing``);
+A world records this with ``metadata["compositing"] = "layers"`` (``dsg_gym.world.World.compositing``);
 every renderer of such a world composites the same way.
 """
 
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import torch
 
+from ..splat_options import LAYER_MARGIN
 from .rasterization import rasterize
 
 __all__ = ["merge_layers", "rasterize_layers"]
@@ -36,6 +40,7 @@ def merge_layers(
     alphas_b: torch.Tensor,
     depths_b: torch.Tensor,
     backgrounds: torch.Tensor | None = None,
+    margin: float = LAYER_MARGIN,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Merge two rendered layers per pixel, the nearer (by expected depth) over the other.
 
@@ -43,8 +48,10 @@ def merge_layers(
         colors_a, colors_b: ``[..., H, W, D]`` premultiplied colours (rendered over a zero background).
         alphas_a, alphas_b: ``[..., H, W, 1]``.
         depths_a, depths_b: ``[..., H, W, 1]`` accumulated depth (``sum w_i z_i``; ``D / alpha`` is the
-            expected depth). Layer ``a`` goes in front where its expected depth is strictly smaller.
+            expected depth). Layer ``a`` goes in front where its expected depth is less than ``1 + margin`` times
+            layer ``b``'s.
         backgrounds: ``[..., D]`` colour behind both layers (default 0).
+        margin: how far, relative to its depth, ``b`` must be nearer than ``a`` to go in front (module docstring).
 
     Returns:
         ``colors [..., H, W, D]``, ``alphas [..., H, W, 1]`` and accumulated ``depths [..., H, W, 1]`` of the
@@ -53,7 +60,7 @@ def merge_layers(
     inf = torch.full_like(depths_a, float("inf"))
     ed_a = torch.where(alphas_a > _EMPTY, depths_a / alphas_a.clamp_min(_EMPTY), inf)
     ed_b = torch.where(alphas_b > _EMPTY, depths_b / alphas_b.clamp_min(_EMPTY), inf)
-    a_first = ed_a < ed_b
+    a_first = ed_a < ed_b * (1.0 + margin)
     ta, tb = 1.0 - alphas_a, 1.0 - alphas_b
     colors = torch.where(a_first, colors_a + ta * colors_b, colors_b + tb * colors_a)
     depths = torch.where(a_first, depths_a + ta * depths_b, depths_b + tb * depths_a)

@@ -2,7 +2,8 @@
 
 The background layer is rendered once per camera set (every tile); the objects' layer only on the tiles the
 objects reach. :func:`merge_tiles` merges the two per pixel on the listed tiles, the layer with the smaller
-expected depth (accumulated depth over alpha) in front, as :func:`dsg_gym.splat.layers.merge_layers` does.
+expected depth (accumulated depth over alpha) in front, as :func:`dsg_gym.splat.layers.merge_layers` does (with
+its margin, :data:`dsg_gym.splat_options.LAYER_MARGIN`).
 """
 
 from __future__ import annotations
@@ -10,13 +11,15 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ..splat_options import LAYER_MARGIN
 from . import numba_incremental as incr
 from .numba_raster import TILE
 
-__all__ = ["composite_layers", "merge_tiles", "merge_tiles_serial"]
+__all__ = ["composite_layers", "merge_tiles"]
 
 _EMPTY = np.float32(1e-6)  # a layer whose alpha is below this does not cover the pixel (dsg_gym.splat.layers)
 _FAR = np.float32(3.0e38)  # the expected depth of a layer that does not cover a pixel
+_AHEAD = np.float32(1.0 + LAYER_MARGIN)  # the objects go in front unless the background is nearer than this
 
 
 @nb.njit(cache=True)
@@ -35,7 +38,7 @@ def _merge_tile(ct, tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_
             tb = bg_T[cb, y, x]
             ea = obj_out[c, y, x, o_depth] / (one - ta) if one - ta > _EMPTY else _FAR
             eb = bg_out[cb, y, x, o_depth] / (one - tb) if one - tb > _EMPTY else _FAR
-            if ea < eb:
+            if ea < eb * _AHEAD:
                 for ch in range(D):
                     out[c, y, x, ch] = obj_out[c, y, x, ch] + ta * bg_out[cb, y, x, ch]
             else:
@@ -44,19 +47,13 @@ def _merge_tile(ct, tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_
             T[c, y, x] = ta * tb
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True)
 def merge_tiles(tiles, tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_T, out, T):
     """Merge the objects' layer (obj_out [C,H,W,D], obj_T [C,H,W]) and the background's (bg_out [V,H,W,D], bg_T
     [V,H,W]; camera ``c`` reads the background's camera ``c % V``, so several scenes may share one) into out
     [C,H,W,D] and T [C,H,W] on ``tiles`` (each ``c * tiles + t``). Channel ``o_depth`` holds the accumulated
-    depth; every channel is merged, the nearer layer's plus its transmittance times the other's."""
-    for m in nb.prange(tiles.shape[0]):
-        _merge_tile(tiles[m], tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_T, out, T)
-
-
-@nb.njit(cache=True)
-def merge_tiles_serial(tiles, tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_T, out, T):
-    """:func:`merge_tiles` on the calling thread (the same arithmetic, so the same bits)."""
+    depth; every channel is merged, the nearer layer's plus its transmittance times the other's. One thread: the
+    work is a few operations per pixel of the recomposited tiles."""
     for m in range(tiles.shape[0]):
         _merge_tile(tiles[m], tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_T, out, T)
 
@@ -75,8 +72,8 @@ def composite_layers(
     lists); ``blank``: zeros [V,H,W,D] and ones [V,H,W], the empty layer the objects' pixels start from (the
     compositing kernel's cache path: pixels no object reaches are copied from it, the others reuse the row spans
     it computes); ``o_depth``: the accumulated depth channel; ``obj_buf`` and ``out``: (colours [C,H,W,D],
-    transmittance [C,H,W]). ``par``: threaded or single-threaded compositing (the same bits); the merge is
-    light and runs on the calling thread.
+    transmittance [C,H,W]). ``par``: threaded or single-threaded compositing (the same bits); the merge
+    (:func:`merge_tiles`) runs on the calling thread.
     """
     tiles_x, tiles_y, width, height = grid
     bg_out, bg_T, a_rec, a_rect, a_rows = background
@@ -90,4 +87,4 @@ def composite_layers(
                 np.zeros((0, TILE * TILE), np.float32))  # fmt: skip
     composite(*plan, a_rec, a_rect, a_rows, empty, *objects, *bins, tiles_x, tiles_y, width, height, consts, True,
               *blank, *no_tails, obj_out, obj_T)  # fmt: skip
-    merge_tiles_serial(tiles, tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_T, out[0], out[1])
+    merge_tiles(tiles, tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_T, out[0], out[1])

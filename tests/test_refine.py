@@ -150,6 +150,10 @@ def test_layered_refinement_is_recorded_and_rendered_in_layers(unrefined, tmp_pa
     ]
     assert r["mean_unaligned"]["psnr"] == pytest.approx(float(np.mean(psnr)), abs=1e-3)
     assert np.abs(two - one).max() > 1e-3  # the layers are not the sorted render
+    # dsg-train refuses --layers without a refinement, before training
+    no = tmp_path / "no.dsgworld"
+    args = [str(cap), "--out", str(no), "--preset", "quick", "--refine-steps", "0", "--layers", "--quiet"]
+    assert dual_cli.main_two_state(args) == 2 and not no.exists()
     # a layered world stays layered when refined by the command, and the command takes the support weight
     out = tmp_path / "l.dsgworld"
     args = [str(path), str(cap), "--out", str(out), "--steps", "30", "--layers", "--support-weight", "0.1"]

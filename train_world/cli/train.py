@@ -407,6 +407,8 @@ def main_two_state(argv: list[str] | None = None) -> int:
             seed=args.seed,
             layers=args.layers,
         )
+        if refine.layers and refine.steps == 0:
+            raise ValueError("--layers acts in the refinement; this run has none: drop --layers or refine")
         args.out.parent.mkdir(parents=True, exist_ok=True)
         trainer = DualTrainer(args.capture, config, checkpoint=ckpt)
         if trainer.table_bounds is not None and trainer.has_masks:

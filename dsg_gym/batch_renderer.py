@@ -117,12 +117,11 @@ class BatchSceneRenderer:
             bg_out, bg_T = r.background_render(layout)
             objects = (st["m2"], st["conics"], st["opac"], st["colors"], st["rects"], st["depths"])
             if r.layers:
-                if "obj_out" not in st:
-                    st["obj_out"], st["obj_T"] = np.zeros_like(st["out"]), np.ones_like(st["T"])
-                layers.composite_layers(tiles, par, (r.tiles_x, r.tiles_y, r.width, r.height), r._consts, objects,
-                                        (b_off, b_gauss), (bg_out, bg_T, bg_rec, bg_rect, bg_rows),
-                                        r.blank_layer(layout), layout[3], (st["obj_out"], st["obj_T"]),
-                                        (st["out"], st["T"]))  # fmt: skip
+                if "layer" not in st:
+                    st["layer"] = layers.ObjectLayer(E * V, V, r.height, r.width, st["out"].shape[3])
+                st["layer"].composite(tiles, par, (r.tiles_x, r.tiles_y, r.width, r.height), r._consts, objects,
+                                      (b_off, b_gauss), (bg_out, bg_T, bg_rec, bg_rect, bg_rows), layout[3],
+                                      (st["out"], st["T"]))  # fmt: skip
             else:
                 threads = nb.get_num_threads() if par else 1
                 plan = incr.plan_tiles(tiles, r._bg_bins[0], b_off, True, threads)

@@ -363,7 +363,12 @@ class SceneRenderer:
                                              self.tiles_x, self.tiles_y, self._slices, active)
             b = st["proj"]
             if self.layers:
-                self._composite_layers(st, layout, tiles, (b_off, b_gauss), par)
+                if "layer" not in st:
+                    st["layer"] = layers.ObjectLayer(self.V, self.V, self.height, self.width, st["out"].shape[3])
+                st["layer"].composite(tiles, par, (self.tiles_x, self.tiles_y, self.width, self.height), self._consts,
+                                      (b.means2d, b.conics, st["opac"], st["colors"], b.rects, b.depths),
+                                      (b_off, b_gauss), (st["bg_out"], st["bg_T"], st["bg_rec"], st["bg_rect"],
+                                      st["bg_rows"]), layout[3], (st["out"], st["T"]))
             else:
                 # incremental: pixels that no object reaches come from the background-only render
                 cache = (st["bg_out"], st["bg_T"]) if incremental else (st["out"], st["T"])
@@ -379,30 +384,6 @@ class SceneRenderer:
         out = self._outputs(st, layout, tiles, depth)
         self.threads.record(par, time.perf_counter() - t0, tiles.size + _FIXED_WORK)
         return out
-
-    def _composite_layers(self, st, layout, tiles, bins, par: bool) -> None:
-        """Two layers: the objects alone on ``tiles``, merged with the background-only render."""
-        if "obj_out" not in st:
-            st["obj_out"], st["obj_T"] = np.zeros_like(st["out"]), np.ones_like(st["T"])
-        b = st["proj"]
-        layers.composite_layers(tiles, par, (self.tiles_x, self.tiles_y, self.width, self.height), self._consts,
-                                (b.means2d, b.conics, st["opac"], st["colors"], b.rects, b.depths), bins,
-                                (st["bg_out"], st["bg_T"], st["bg_rec"], st["bg_rect"], st["bg_rows"]),
-                                self.blank_layer(layout), layout[3], (st["obj_out"], st["obj_T"]),
-                                (st["out"], st["T"]))
-
-    def blank_layer(self, layout) -> tuple[np.ndarray, np.ndarray]:
-        """An empty layer for every camera (colours 0 ``[V,H,W,D]``, transmittance 1 ``[V,H,W]``; read-only), where
-        the objects' layer starts (:func:`dsg_gym.splat.numba_layers.composite_layers`)."""
-        D = max(layout[0], 1)
-        blank = getattr(self, "_blank", None)
-        if blank is None or blank[0].shape != (self.V, self.height, self.width, D):
-            blank = (np.zeros((self.V, self.height, self.width, D), np.float32),
-                     np.ones((self.V, self.height, self.width), np.float32))
-            for a in blank:
-                a.flags.writeable = False
-            self._blank = blank
-        return blank
 
     def _parallel(self) -> bool:
         """Threads for this render: as ``parallel`` says, or (``None``) as :attr:`threads` chooses."""

@@ -15,7 +15,7 @@ from ..splat_options import LAYER_MARGIN
 from . import numba_incremental as incr
 from .numba_raster import TILE
 
-__all__ = ["composite_layers", "merge_tiles"]
+__all__ = ["ObjectLayer", "composite_layers", "merge_tiles"]
 
 _EMPTY = np.float32(1e-6)  # a layer whose alpha is below this does not cover the pixel (dsg_gym.splat.layers)
 _FAR = np.float32(3.0e38)  # the expected depth of a layer that does not cover a pixel
@@ -88,3 +88,25 @@ def composite_layers(
     composite(*plan, a_rec, a_rect, a_rows, empty, *objects, *bins, tiles_x, tiles_y, width, height, consts, True,
               *blank, *no_tails, obj_out, obj_T)  # fmt: skip
     merge_tiles(tiles, tiles_x, width, height, o_depth, obj_out, obj_T, bg_out, bg_T, out[0], out[1])
+
+
+class ObjectLayer:
+    """The objects' layer of C images (colours ``[C,H,W,D]``, transmittance ``[C,H,W]``) and the blank layer of
+    the V background cameras it starts from (zeros and ones, read-only; image ``c`` reads camera ``c % V``).
+
+    A renderer keeps one per render state (C = V for one scene, E * V for E scenes sharing the background) and
+    recomposites through :meth:`composite`.
+    """
+
+    def __init__(self, images: int, cameras: int, height: int, width: int, channels: int):
+        self.out = np.zeros((images, height, width, channels), np.float32)
+        self.T = np.ones((images, height, width), np.float32)
+        self.blank = (np.zeros((cameras, height, width, channels), np.float32),
+                      np.ones((cameras, height, width), np.float32))  # fmt: skip
+        for a in self.blank:
+            a.flags.writeable = False
+
+    def composite(self, tiles, par: bool, grid, consts, objects, bins, background, o_depth, out) -> None:
+        """:func:`composite_layers` into this layer's buffers, from its blank layer."""
+        composite_layers(tiles, par, grid, consts, objects, bins, background, self.blank, o_depth, (self.out, self.T),
+                         out)  # fmt: skip

@@ -99,7 +99,7 @@ class BatchSceneRenderer:
         t0 = time.perf_counter()
         allowed = parallel_allowed(r.parallel)
         par = self.threads.choose(allowed) if r.parallel is None else allowed
-        update = batch.update_objects if par and len(pairs) > 1 else batch.update_objects_serial
+        update = batch.update_objects if par else batch.update_objects_serial
         update(pairs, st["q"], st["R"], st["t"], r._obj_means, r._obj_quats, r._obj_scales,
                np.ascontiguousarray(r._obj_opac[None]), r._obj_sh, r._obj_label, r._slices, r.viewmats, r.Ks,
                r._campos, float(r.width), float(r.height), r.near, r.far, r.alpha_min, r.eps2d,

@@ -24,6 +24,7 @@ import numba as nb
 import numpy as np
 
 from .gaussians import GaussianSet
+from .splat import numba_batch as batch
 from .splat import numba_bins as binning
 from .splat import numba_incremental as incr
 from .splat import numba_layers as layers
@@ -219,7 +220,6 @@ class SceneRenderer:
             self._obj_sh[self._slices[k]:self._slices[k + 1], :m] = o.sh[:, :m]
         self._obj_label = np.concatenate([np.full(n, k + 1, np.int64) for k, n in enumerate(sizes)]) \
             if sizes else np.zeros(0, np.int64)
-        self._rgb_scratch = np.zeros((max(sizes, default=0), 3), np.float32)  # one object's RGB, one camera
         self.set_cameras(viewmats, Ks, width, height)
 
     # ----------------------------------------------------------------------------------------
@@ -281,36 +281,23 @@ class SceneRenderer:
         return col
 
     def _update_objects(self, st, poses, moved, layout, dirty, par: bool) -> None:
-        """Re-pose, re-project and re-colour the moved objects; mark their old and new tiles."""
-        q_all, R_all, t_all = poses
-        for k in moved:
-            s, e = self._slices[k], self._slices[k + 1]
-            if e == s:
-                continue
-            tmask = st["tile_masks"][k]  # the tiles the object reached until now
-            if dirty is not None:
-                dirty |= tmask
-            t, q, Rm = t_all[k], q_all[k], R_all[k]
-            rigid.rigid_transform(self._obj_means[s:e], self._obj_quats[s:e], Rm, t, q, st["means"][s:e],
-                              st["quats"][s:e])
-            pr = _project(st["means"][s:e], st["quats"][s:e], self._obj_scales[s:e], self._obj_opac[s:e],
-                          self.viewmats, self.Ks, self.width, self.height, self.near, self.far, self.alpha_min,
-                          self.eps2d, par)
-            for f in ("means2d", "conics", "depths", "radii", "rects"):
-                getattr(st["proj"], f)[:, s:e] = getattr(pr, f)
-            if self.rasterize_mode == "antialiased":
-                st["opac"][:, s:e] = _antialias(pr.conics, self._obj_opac[None, s:e], self.eps2d, par)
-            rgb = self._rgb_scratch[:e - s]
-            for v in range(self.V):
-                if layout[1] >= 0:
-                    incr.sh_to_rgb(st["means"][s:e], Rm, self._campos[v], self._obj_sh[s:e], self._sh_degree,
-                                   rgb)
-                incr.fill_colors(rgb, self._obj_label[s:e], pr.depths[v], layout[1], layout[2], layout[3],
-                              st["colors"][v, s:e])
-            tmask[:] = False
-            incr.mark_tiles(pr.rects, self.tiles_x, tmask)
-            if dirty is not None:
-                dirty |= tmask
+        """Re-pose, re-project and re-colour the moved objects; mark their old and new tiles in ``dirty`` (``None``:
+        a full render, nothing to mark) (:func:`dsg_gym.splat.numba_batch.update_objects`, one scene)."""
+        if not moved:
+            return
+        pairs = np.zeros((len(moved), 2), np.int64)
+        pairs[:, 1] = moved
+        if dirty is None:
+            dirty = np.zeros((self.V, self.tiles_x * self.tiles_y), np.bool_)
+        q, Rm, t = poses
+        b = st["proj"]
+        update = batch.update_objects if par else batch.update_objects_serial
+        update(pairs, q[None], Rm[None], t[None], self._obj_means, self._obj_quats, self._obj_scales,
+               np.ascontiguousarray(self._obj_opac[None]), self._obj_sh, self._obj_label, self._slices, self.viewmats,
+               self.Ks, self._campos, float(self.width), float(self.height), self.near, self.far, self.alpha_min,
+               self.eps2d, self.rasterize_mode == "antialiased", self._sh_degree, layout[1], layout[2], layout[3],
+               self.tiles_x, st["means"][None], st["quats"][None], b.means2d, b.conics, b.depths, b.radii, b.rects,
+               st["opac"], st["colors"], st["tile_masks"][None], dirty)
 
     def render(self, poses, *, rgb: bool = True, mask: bool = True, depth: bool = False,
                incremental: bool = True) -> RenderOutput:
@@ -359,7 +346,8 @@ class SceneRenderer:
                 b_off, b_gauss = _bins(st["proj"], self.tiles_x, self.tiles_y)
             else:  # only the recomposited tiles' lists are read
                 active = (st["tile_masks"] & dirty).reshape(self.K, -1).any(axis=1)
-                b_off, b_gauss = incr.bin_tiles(st["proj"].depths.view(np.uint32), st["proj"].rects, dirty,
+                binning = incr.bin_tiles_parallel if par and self.V > 1 else incr.bin_tiles
+                b_off, b_gauss = binning(st["proj"].depths.view(np.uint32), st["proj"].rects, dirty,
                                              self.tiles_x, self.tiles_y, self._slices, active)
             b = st["proj"]
             if self.layers:

@@ -206,3 +206,120 @@ def test_stable_baselines3_trains_on_the_vector_env():
             break
     assert ended is not None and ended["TimeLimit.truncated"] is True
     assert ended["terminal_observation"]["rgb"].shape == (64, 64, 3)
+
+
+def test_thread_chooser_keeps_threads_within_its_margin():
+    with pytest.raises(ValueError, match="margin"):
+        ThreadChooser(margin=0.9)
+    c = ThreadChooser(probe=4, max_probe=16, margin=1.25)
+    speed = {True: 1.0, False: 0.85}  # one thread slightly faster per unit: noise-level, within the margin
+    picks = []
+    for _ in range(200):
+        p = c.choose()
+        picks.append(p)
+        c.record(p, speed[p], 1.0)
+    assert c.best() is True and sum(picks[-100:]) >= 85
+    speed = {True: 1.0, False: 0.7}  # a clear lead past the margin hands over
+    picks = []
+    for _ in range(200):
+        p = c.choose()
+        picks.append(p)
+        c.record(p, speed[p], 1.0)
+    assert c.best() is False and sum(picks[-100:]) <= 15
+    plain = ThreadChooser(probe=4, max_probe=16, margin=1.0)  # without a margin the slight lead wins
+    for _ in range(60):
+        p = plain.choose()
+        plain.record(p, {True: 1.0, False: 0.85}[p], 1.0)
+    assert plain.best() is False
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_update_objects_in_gaussian_runs_equals_the_per_camera_kernels(antialiased):
+    """The object update split into (pair, camera, run of CHUNK Gaussians) items, threaded or not, writes
+    exactly what projecting, filtering and colouring each camera's Gaussians in one piece does."""
+    from dsg_gym.splat import numba_batch as nbatch
+    from dsg_gym.splat import numba_incremental as incr
+    from dsg_gym.splat import numba_project as proj
+    from dsg_gym.splat import numba_rigid as rigid
+
+    rng = np.random.default_rng(4)
+    # runs across a chunk edge, a small and an empty object
+    sizes = [2 * nbatch.CHUNK + 37, 5, 0, nbatch.CHUNK]
+    N, K, V, E, deg = sum(sizes), len(sizes), 3, 2, 2
+    slices = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    obj_means = rng.normal(0, 0.05, (N, 3)).astype(np.float32)
+    obj_quats = rng.normal(size=(N, 4)).astype(np.float32)
+    obj_quats /= np.linalg.norm(obj_quats, axis=1, keepdims=True)
+    obj_scales = rng.uniform(0.002, 0.02, (N, 3)).astype(np.float32)
+    obj_opac = rng.uniform(0.1, 1.0, (1, N)).astype(np.float32)
+    obj_sh = rng.normal(0, 0.3, (N, (deg + 1) ** 2, 3)).astype(np.float32)
+    labels = np.concatenate([np.full(n, k + 1, np.int64) for k, n in enumerate(sizes)])
+    W = H = 64
+    viewmats = np.tile(np.eye(4), (V, 1, 1))
+    viewmats[:, 0, 3] = [-0.03, 0.0, 0.04]
+    viewmats[:, 2, 3] = [0.5, 0.6, 0.55]
+    Ks = np.tile(np.array([[80.0, 0, 32], [0, 80.0, 32], [0, 0, 1]]), (V, 1, 1))
+    campos = np.stack([-(m[:3, :3].T @ m[:3, 3]) for m in viewmats])
+    q = rng.normal(size=(E, K, 4))
+    q /= np.linalg.norm(q, axis=2, keepdims=True)
+    q[q[..., 0] < 0] *= -1
+    R = np.stack([[np.array(_rotmat(qq)) for qq in qe] for qe in q])
+    t = rng.normal(0, 0.02, (E, K, 3))
+    tiles_x = tiles_y = 4
+    D, o_rgb, o_mask, o_depth = 3 + K + 1 + 1, 0, 3, 3 + K + 1
+    pairs = np.array([[0, 0], [1, 0], [1, 1], [0, 2], [1, 3]], np.int64)
+    C = E * V
+    outs = []
+    for kernel in (nbatch.update_objects, nbatch.update_objects_serial):
+        o = {"means": np.zeros((E, N, 3), np.float32), "quats": np.zeros((E, N, 4), np.float32),
+             "m2": np.zeros((C, N, 2), np.float32), "conics": np.zeros((C, N, 3), np.float32),
+             "depths": np.zeros((C, N), np.float32), "radii": np.zeros((C, N, 2), np.int32),
+             "rects": np.zeros((C, N, 4), np.int32), "opac": np.zeros((C, N), np.float32),
+             "colors": np.zeros((C, N, D), np.float32), "tiles": np.zeros((E, K, V, tiles_x * tiles_y), np.bool_),
+             "dirty": np.zeros((C, tiles_x * tiles_y), np.bool_)}  # fmt: skip
+        kernel(pairs, q, R, t, obj_means, obj_quats, obj_scales, obj_opac, obj_sh, labels, slices, viewmats, Ks,
+               campos, float(W), float(H), 0.01, 1e10, 1 / 255, 0.3, antialiased, deg, o_rgb, o_mask, o_depth,
+               tiles_x, o["means"], o["quats"], o["m2"], o["conics"], o["depths"], o["radii"], o["rects"],
+               o["opac"], o["colors"], o["tiles"], o["dirty"])  # fmt: skip
+        outs.append(o)
+    for key in outs[0]:
+        np.testing.assert_array_equal(outs[0][key], outs[1][key], err_msg=key)
+    o = outs[0]
+    assert o["dirty"].any() and o["colors"][:, :, o_rgb].any()
+    for e, k in pairs:
+        s, f = slices[k], slices[k + 1]
+        if f == s:
+            assert not o["tiles"][e, k].any()
+            continue
+        m, qq = np.empty((f - s, 3), np.float32), np.empty((f - s, 4), np.float32)
+        rigid.rigid_transform(obj_means[s:f], obj_quats[s:f], R[e, k], t[e, k], q[e, k], m, qq)
+        np.testing.assert_array_equal(o["means"][e, s:f], m)
+        ref = {"m2": np.empty((V, f - s, 2), np.float32), "conics": np.empty((V, f - s, 3), np.float32),
+               "depths": np.empty((V, f - s), np.float32), "radii": np.empty((V, f - s, 2), np.int32),
+               "rects": np.empty((V, f - s, 4), np.int32)}  # fmt: skip
+        proj.project_forward_serial(m, qq, obj_scales[s:f], obj_opac[:, s:f], viewmats, Ks, float(W), float(H),
+                                    0.01, 1e10, ref["m2"], ref["conics"], ref["depths"], ref["radii"], ref["rects"],
+                                    1 / 255, 0.3)  # fmt: skip
+        cams = slice(e * V, (e + 1) * V)
+        for key, want in ref.items():
+            np.testing.assert_array_equal(o[key][cams, s:f], want, err_msg=f"{key} pair {e},{k}")
+        if antialiased:
+            op = np.empty((V, f - s), np.float32)
+            proj.antialias_opacities_serial(ref["conics"], obj_opac[:, s:f], op, 0.3)
+            np.testing.assert_array_equal(o["opac"][cams, s:f], op)
+        tiles = np.zeros((V, tiles_x * tiles_y), np.bool_)
+        for v in range(V):
+            rgb = np.empty((f - s, 3), np.float32)
+            incr.sh_to_rgb(m, R[e, k], campos[v], obj_sh[s:f], deg, rgb)
+            col = np.empty((f - s, D), np.float32)
+            incr.fill_colors(rgb, labels[s:f], ref["depths"][v], o_rgb, o_mask, o_depth, col)
+            np.testing.assert_array_equal(o["colors"][e * V + v, s:f], col)
+        incr.mark_tiles(ref["rects"], tiles_x, tiles)
+        np.testing.assert_array_equal(o["tiles"][e, k], tiles)
+        assert (o["dirty"][cams] >= tiles).all()
+
+
+def _rotmat(q):
+    from dsg_gym.poses import quat_to_rotmat
+
+    return quat_to_rotmat(np.asarray(q, np.float64))

@@ -100,12 +100,13 @@ class BatchSceneRenderer:
         allowed = parallel_allowed(r.parallel)
         par = self.threads.choose(allowed) if r.parallel is None else allowed
         update = batch.update_objects if par else batch.update_objects_serial
+        chunk = batch.chunk_for(len(pairs), V, nb.get_num_threads() if par else 1)
         update(pairs, st["q"], st["R"], st["t"], r._obj_means, r._obj_quats, r._obj_scales,
                np.ascontiguousarray(r._obj_opac[None]), r._obj_sh, r._obj_label, r._slices, r.viewmats, r.Ks,
                r._campos, float(r.width), float(r.height), r.near, r.far, r.alpha_min, r.eps2d,
                r.rasterize_mode == "antialiased", r._sh_degree, layout[1], layout[2], layout[3], r.tiles_x,
                st["means"], st["quats"], st["m2"], st["conics"], st["depths"], st["radii"], st["rects"], st["opac"],
-               st["colors"], st["tile_masks"], dirty)  # fmt: skip
+               st["colors"], st["tile_masks"], dirty, chunk)  # fmt: skip
         tiles = np.flatnonzero(dirty.reshape(-1)).astype(np.int64)
         if tiles.size:
             active = (st["tile_masks"] & dirty.reshape(E, 1, V, T)).any(axis=(0, 2, 3))

@@ -292,12 +292,13 @@ class SceneRenderer:
         q, Rm, t = poses
         b = st["proj"]
         update = batch.update_objects if par else batch.update_objects_serial
+        chunk = batch.chunk_for(len(moved), self.V, nb.get_num_threads() if par else 1)
         update(pairs, q[None], Rm[None], t[None], self._obj_means, self._obj_quats, self._obj_scales,
                np.ascontiguousarray(self._obj_opac[None]), self._obj_sh, self._obj_label, self._slices, self.viewmats,
                self.Ks, self._campos, float(self.width), float(self.height), self.near, self.far, self.alpha_min,
                self.eps2d, self.rasterize_mode == "antialiased", self._sh_degree, layout[1], layout[2], layout[3],
                self.tiles_x, st["means"][None], st["quats"][None], b.means2d, b.conics, b.depths, b.radii, b.rects,
-               st["opac"], st["colors"], st["tile_masks"][None], dirty)
+               st["opac"], st["colors"], st["tile_masks"][None], dirty, chunk)
 
     def render(self, poses, *, rgb: bool = True, mask: bool = True, depth: bool = False,
                incremental: bool = True) -> RenderOutput:

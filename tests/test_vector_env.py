@@ -235,8 +235,8 @@ def test_thread_chooser_keeps_threads_within_its_margin():
 
 @pytest.mark.parametrize("antialiased", [False, True])
 def test_update_objects_in_gaussian_runs_equals_the_per_camera_kernels(antialiased):
-    """The object update split into (pair, camera, run of CHUNK Gaussians) items, threaded or not, writes
-    exactly what projecting, filtering and colouring each camera's Gaussians in one piece does."""
+    """The object update split into (pair, camera, run of Gaussians) items, threaded or not, in runs of any
+    length, writes exactly what projecting, filtering and colouring each camera's Gaussians in one piece does."""
     from dsg_gym.splat import numba_batch as nbatch
     from dsg_gym.splat import numba_incremental as incr
     from dsg_gym.splat import numba_project as proj
@@ -270,7 +270,10 @@ def test_update_objects_in_gaussian_runs_equals_the_per_camera_kernels(antialias
     pairs = np.array([[0, 0], [1, 0], [1, 1], [0, 2], [1, 3]], np.int64)
     C = E * V
     outs = []
-    for kernel in (nbatch.update_objects, nbatch.update_objects_serial):
+    runs = [(nbatch.update_objects, nbatch.CHUNK), (nbatch.update_objects_serial, nbatch.CHUNK),
+            (nbatch.update_objects, 7), (nbatch.update_objects, nbatch.chunk_for(len(pairs), V, 1))]  # fmt: skip
+    assert nbatch.chunk_for(len(pairs), V, 1) > N and nbatch.chunk_for(1, 1, 2) == nbatch.CHUNK
+    for kernel, chunk in runs:
         o = {"means": np.zeros((E, N, 3), np.float32), "quats": np.zeros((E, N, 4), np.float32),
              "m2": np.zeros((C, N, 2), np.float32), "conics": np.zeros((C, N, 3), np.float32),
              "depths": np.zeros((C, N), np.float32), "radii": np.zeros((C, N, 2), np.int32),
@@ -280,10 +283,11 @@ def test_update_objects_in_gaussian_runs_equals_the_per_camera_kernels(antialias
         kernel(pairs, q, R, t, obj_means, obj_quats, obj_scales, obj_opac, obj_sh, labels, slices, viewmats, Ks,
                campos, float(W), float(H), 0.01, 1e10, 1 / 255, 0.3, antialiased, deg, o_rgb, o_mask, o_depth,
                tiles_x, o["means"], o["quats"], o["m2"], o["conics"], o["depths"], o["radii"], o["rects"],
-               o["opac"], o["colors"], o["tiles"], o["dirty"])  # fmt: skip
+               o["opac"], o["colors"], o["tiles"], o["dirty"], chunk)  # fmt: skip
         outs.append(o)
-    for key in outs[0]:
-        np.testing.assert_array_equal(outs[0][key], outs[1][key], err_msg=key)
+    for other in outs[1:]:
+        for key in outs[0]:
+            np.testing.assert_array_equal(outs[0][key], other[key], err_msg=key)
     o = outs[0]
     assert o["dirty"].any() and o["colors"][:, :, o_rgb].any()
     for e, k in pairs:

@@ -18,28 +18,35 @@ from .numba_incremental import fill_colors, mark_tiles, sh_to_rgb
 from .numba_project import _FASTMATH, _antialias_one, _project_one
 from .numba_rigid import rigid_transform
 
-__all__ = ["CHUNK", "update_objects", "update_objects_serial"]
+__all__ = ["CHUNK", "chunk_for", "update_objects", "update_objects_serial"]
 
-CHUNK = 256  # Gaussians of one object in one camera per work item
+CHUNK = 256  # Gaussians of one object in one camera per work item, when there are few (pair, camera) items
+_WHOLE = 1 << 40  # one item per (pair, camera)
+
+
+def chunk_for(pairs: int, cameras: int, threads: int) -> int:
+    """The run length of :func:`update_objects`' items: :data:`CHUNK` while the (pair, camera) items are fewer
+    than twice the threads (one env: one moved object), else whole objects (a batch: enough items already)."""
+    return CHUNK if pairs * cameras < 2 * threads else _WHOLE
 
 
 @nb.njit(cache=True)
-def _items(pairs, slices, V):
-    """Work items [I, 4]: (pair, camera, first Gaussian, end) over every pair's Gaussians in CHUNK runs."""
+def _items(pairs, slices, V, chunk):
+    """Work items [I, 4]: (pair, camera, first Gaussian, end) over every pair's Gaussians in runs of ``chunk``."""
     n = 0
     for m in range(pairs.shape[0]):
         k = pairs[m, 1]
-        n += V * ((slices[k + 1] - slices[k] + CHUNK - 1) // CHUNK)
+        n += V * ((slices[k + 1] - slices[k] + chunk - 1) // chunk)
     items = np.empty((n, 4), np.int64)
     j = 0
     for m in range(pairs.shape[0]):
         k = pairs[m, 1]
         for v in range(V):
-            for i0 in range(slices[k], slices[k + 1], CHUNK):
+            for i0 in range(slices[k], slices[k + 1], chunk):
                 items[j, 0] = m
                 items[j, 1] = v
                 items[j, 2] = i0
-                items[j, 3] = min(i0 + CHUNK, slices[k + 1])
+                items[j, 3] = min(i0 + chunk, slices[k + 1])
                 j += 1
     return items
 
@@ -105,7 +112,7 @@ def _mark_dirty(pairs, tile_masks, dirty):
 def update_objects(pairs, q, R, t, obj_means, obj_quats, obj_scales, obj_opac, obj_sh, labels, slices, viewmats, Ks,
                    campos, width, height, near, far, alpha_min, eps2d, antialiased, sh_degree, o_rgb, o_mask,
                    o_depth, tiles_x, means, quats, m2, conics, depths, radii, rects, opac, colors, tile_masks,
-                   dirty):  # fmt: skip
+                   dirty, chunk=CHUNK):  # fmt: skip
     """Re-pose the moved (scene, object) ``pairs`` [M, 2] and flag the tiles they leave and reach.
 
     Poses per scene and object: unit quaternions q [E,K,4] (w >= 0), rotations R [E,K,3,3], translations
@@ -119,14 +126,15 @@ def update_objects(pairs, q, R, t, obj_means, obj_quats, obj_scales, obj_opac, o
     Written per pair: means [E,N,3], quats [E,N,4] (world frame), means2d m2 [C,N,2], conics [C,N,3],
     depths [C,N], radii [C,N,2], rects [C,N,4], colors [C,N,D] and the pair's tiles tile_masks [E,K,V,T];
     dirty [C,T] is or-ed with the pair's tiles before and after the move. Three parallel loops: the poses over
-    pairs, projection and colours over (pair, camera, Gaussian run) items, the new tiles over (pair, camera).
+    pairs, projection and colours over (pair, camera, run of ``chunk`` Gaussians) items, the new tiles over (pair,
+    camera). ``chunk`` only splits the work (:func:`chunk_for`); every split writes the same bits.
     """
     V = viewmats.shape[0]
     M = pairs.shape[0]
     _mark_dirty(pairs, tile_masks, dirty)
     for m in nb.prange(M):
         _pose_pair(pairs[m, 0], pairs[m, 1], q, R, t, obj_means, obj_quats, slices, means, quats)
-    items = _items(pairs, slices, V)
+    items = _items(pairs, slices, V, chunk)
     for j in nb.prange(items.shape[0]):
         m = items[j, 0]
         _view_item(pairs[m, 0], pairs[m, 1], items[j, 1], items[j, 2], items[j, 3], R, obj_scales, obj_opac, obj_sh,
@@ -145,14 +153,14 @@ def update_objects(pairs, q, R, t, obj_means, obj_quats, obj_scales, obj_opac, o
 def update_objects_serial(pairs, q, R, t, obj_means, obj_quats, obj_scales, obj_opac, obj_sh, labels, slices,
                           viewmats, Ks, campos, width, height, near, far, alpha_min, eps2d, antialiased, sh_degree,
                           o_rgb, o_mask, o_depth, tiles_x, means, quats, m2, conics, depths, radii, rects, opac,
-                          colors, tile_masks, dirty):  # fmt: skip
+                          colors, tile_masks, dirty, chunk=CHUNK):  # fmt: skip
     """:func:`update_objects` on the calling thread: the same arithmetic, the same bits."""
     V = viewmats.shape[0]
     M = pairs.shape[0]
     _mark_dirty(pairs, tile_masks, dirty)
     for m in range(M):
         _pose_pair(pairs[m, 0], pairs[m, 1], q, R, t, obj_means, obj_quats, slices, means, quats)
-    items = _items(pairs, slices, V)
+    items = _items(pairs, slices, V, chunk)
     for j in range(items.shape[0]):
         m = items[j, 0]
         _view_item(pairs[m, 0], pairs[m, 1], items[j, 1], items[j, 2], items[j, 3], R, obj_scales, obj_opac, obj_sh,

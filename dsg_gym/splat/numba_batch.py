@@ -3,7 +3,7 @@
 A batch of E scenes seen by the same V cameras is laid out as ``C = E * V`` cameras (scene ``e``'s camera ``v``
 is ``e * V + v``); the per-Gaussian arrays of the objects hold every scene's copy. :func:`update_objects`
 re-poses the (scene, object) pairs that moved, re-projects and re-colours them in parallel over (pair, camera,
-run of :data:`CHUNK` Gaussians) items, and marks the tiles each touched before and after its move. Every
+run of Gaussians) items (:func:`chunk_for`), and marks the tiles each touched before and after its move. Every
 Gaussian gets exactly the arithmetic of the one-scene projection and colouring (``project_forward``,
 ``sh_to_rgb``, ``fill_colors``), however the work is split, so the images are the same bit for bit. One scene
 (E = 1) is :class:`dsg_gym.scene_renderer.SceneRenderer`'s object update.

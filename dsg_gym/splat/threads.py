@@ -88,8 +88,9 @@ class ThreadChooser:
     The single-threaded path takes over only when it is faster by more than ``margin`` (threads stay while their
     cost is at most ``margin`` times the single thread's): the time per unit of work varies by about 40 % from
     call to call (how many Gaussians the recomposited tiles list), so without a margin a lucky probe on an idle
-    machine hands over to the slower path until the next probes undo it. Where a core is taken the threaded
-    path is 1.5-3.5x slower, well past the margin.
+    machine hands over to the slower path until the next probes undo it. Beside a busy process the threaded
+    path steps 2.5-3.5x slower than one thread (``benchmarks.env_scaling``), well past the margin; beside a
+    learner thread 1.1-1.6x, where the two paths differ less.
 
     Only where threads are allowed at all (:func:`parallel_allowed`); otherwise it always answers ``False``.
     """

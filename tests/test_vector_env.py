@@ -156,22 +156,24 @@ def test_batch_renderer_equals_one_renderer_per_scene():
         batch.render(bad)
 
 
+def _drive(chooser, speed, calls):
+    """Let ``chooser`` pick ``calls`` times, each call costing ``speed[path]`` per unit; the picks."""
+    picks = []
+    for _ in range(calls):
+        p = chooser.choose()
+        picks.append(p)
+        chooser.record(p, speed[p], 1.0)
+    return picks
+
+
 def test_thread_chooser_follows_the_faster_path_and_backs_off():
     c = ThreadChooser(probe=4, max_probe=16)
     assert c.choose(allowed=False) is False
     speed = {True: 1.0, False: 3.0}  # seconds per unit: threads faster
-    picks = []
-    for _ in range(200):
-        p = c.choose()
-        picks.append(p)
-        c.record(p, speed[p], 1.0)
+    picks = _drive(c, speed, 200)
     assert c.best() is True and sum(picks[-100:]) >= 85  # probes of the slow path are rare
     speed = {True: 10.0, False: 3.0}  # another process takes a core: threads stall
-    picks = []
-    for _ in range(200):
-        p = c.choose()
-        picks.append(p)
-        c.record(p, speed[p], 1.0)
+    picks = _drive(c, speed, 200)
     assert c.best() is False and sum(picks[-100:]) <= 15
 
 
@@ -213,23 +215,13 @@ def test_thread_chooser_keeps_threads_within_its_margin():
         ThreadChooser(margin=0.9)
     c = ThreadChooser(probe=4, max_probe=16, margin=1.25)
     speed = {True: 1.0, False: 0.85}  # one thread slightly faster per unit: noise-level, within the margin
-    picks = []
-    for _ in range(200):
-        p = c.choose()
-        picks.append(p)
-        c.record(p, speed[p], 1.0)
+    picks = _drive(c, speed, 200)
     assert c.best() is True and sum(picks[-100:]) >= 85
     speed = {True: 1.0, False: 0.7}  # a clear lead past the margin hands over
-    picks = []
-    for _ in range(200):
-        p = c.choose()
-        picks.append(p)
-        c.record(p, speed[p], 1.0)
+    picks = _drive(c, speed, 200)
     assert c.best() is False and sum(picks[-100:]) <= 15
     plain = ThreadChooser(probe=4, max_probe=16, margin=1.0)  # without a margin the slight lead wins
-    for _ in range(60):
-        p = plain.choose()
-        plain.record(p, {True: 1.0, False: 0.85}[p], 1.0)
+    _drive(plain, {True: 1.0, False: 0.85}, 60)
     assert plain.best() is False
 
 

@@ -140,12 +140,9 @@ def update_objects(pairs, q, R, t, obj_means, obj_quats, obj_scales, obj_opac, o
         _view_item(pairs[m, 0], pairs[m, 1], items[j, 1], items[j, 2], items[j, 3], R, obj_scales, obj_opac, obj_sh,
                    labels, viewmats, Ks, campos, width, height, near, far, alpha_min, eps2d, antialiased, sh_degree,
                    o_rgb, o_mask, o_depth, means, quats, m2, conics, depths, radii, rects, opac, colors)  # fmt: skip
-    if M * V > 1:
-        for mv in nb.prange(M * V):
-            m = mv // V
-            _mark_view(pairs[m, 0], pairs[m, 1], mv - m * V, slices, tiles_x, rects, tile_masks)
-    elif M == 1:  # one object in one camera: no threads to start
-        _mark_view(pairs[0, 0], pairs[0, 1], 0, slices, tiles_x, rects, tile_masks)
+    for mv in nb.prange(M * V):
+        m = mv // V
+        _mark_view(pairs[m, 0], pairs[m, 1], mv - m * V, slices, tiles_x, rects, tile_masks)
     _mark_dirty(pairs, tile_masks, dirty)
 
 

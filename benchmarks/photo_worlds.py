@@ -275,6 +275,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, help="dsg-train steps (default: the preset's)")
     p.add_argument("--stereo", action="store_true", help="dsg-capture --stereo: depth maps from the photos")
     p.add_argument(
+        "--fit-depth",
+        action="store_true",
+        help="dsg-capture --fit-depth: depth maps from a first reconstruction of each state",
+    )
+    p.add_argument(
         "--depth-weight",
         type=float,
         metavar="W",
@@ -292,7 +297,9 @@ def main(argv: list[str] | None = None) -> int:
     train += ["--iterations", str(args.iterations)] if args.iterations else []
     out = args.out or default_out("photo_worlds")
     ev = ["--align-views", str(args.align_views)] if args.align_views else []
-    cap = ["--stereo"] if args.stereo else []
+    if args.stereo and args.fit_depth:
+        p.error("choose one source of depth maps: --stereo or --fit-depth")
+    cap = (["--stereo"] if args.stereo else []) + (["--fit-depth"] if args.fit_depth else [])
     photo_train = ["--depth-weight", str(args.depth_weight)] if args.depth_weight is not None else []
     photo_train += ["--refine-cameras"] if args.refine_cameras else []
     r = run(out, scenes, args.work, synth, train, args.marker or None, ev, cap, photo_train)

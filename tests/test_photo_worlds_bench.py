@@ -83,3 +83,10 @@ def test_photo_worlds_refuses_unknown_scenes(tmp_path, capsys):
         main(["--out", str(tmp_path / "x.json"), "--scenes", "kitchen"])
     assert e.value.code == 2 and "unknown scene" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
+
+
+def test_photo_worlds_takes_one_source_of_depth(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--out", str(tmp_path / "x.json"), "--scenes", "two_blocks", "--stereo", "--fit-depth"])
+    assert e.value.code == 2 and "--stereo or --fit-depth" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()

@@ -8,7 +8,8 @@
     OUT/<state>/transforms.json    pinhole intrinsics + registered frames (OpenGL camera-to-world)
     OUT/<state>/images/<stem>.png  undistorted photos
     OUT/<state>/masks/<stem>.png   undistorted object-id masks
-    OUT/<state>/depth/<stem>.png   with ``stereo``: depth from multi-view stereo (uint16, 0 = none; :mod:`.mvs`)
+    OUT/<state>/depth/<stem>.png   with ``stereo``: depth from multi-view stereo (uint16, 0 = none; :mod:`.mvs`);
+                                   with ``depth_fit``: depth of a first reconstruction (:mod:`.fitted_depth`)
     OUT/points3d.ply               the background's structure-from-motion points (table frame, coloured)
     OUT/report.json                registered views, reprojection error, table fit, per-object estimates, scale
 
@@ -19,6 +20,7 @@ orientation; in ``state2`` it is that pose moved by the estimated motion, so ``r
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import tempfile
 import time
@@ -32,6 +34,7 @@ from tqdm import tqdm
 from train_world.capture.appearance import ColourView
 from train_world.capture.cameras import GL_TO_CV
 from train_world.capture.features import ViewFeatures, extract_view_features
+from train_world.capture.fitted_depth import DepthFit, fit_depth_maps
 from train_world.capture.format import (
     DEPTH_SCALE,
     FORMAT_NAME,
@@ -191,6 +194,7 @@ def build_capture(
     marker_id: int | None = None,
     overwrite: bool = False,
     stereo: bool = False,
+    depth_fit: DepthFit | None = None,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
     reconstruct: Callable[..., SfmResult] = run_sfm,
@@ -202,7 +206,9 @@ def build_capture(
     Metric scale: ``metres_per_unit``, or ``marker_size`` (the black square's edge in metres of an ArUco
     ``DICT_4X4_50`` marker lying in the scene, id ``marker_id`` or the lowest id seen; :mod:`.marker`).
     ``stereo``: depth maps of every view from multi-view stereo (:mod:`.mvs`); training on the capture then
-    starts from them instead of the table top, hulls and random points. ``reconstruct``: the structure-from-motion
+    starts from them instead of the table top, hulls and random points. ``depth_fit``: depth maps of every view
+    from a first reconstruction of each state (:mod:`.fitted_depth`), likewise the training's start.
+    ``reconstruct``: the structure-from-motion
     step, called as :func:`.sfm.run_sfm` is (a benchmark passes one that puts known cameras in place,
     :func:`.compare.with_true_cameras`)."""
     if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
@@ -211,6 +217,8 @@ def build_capture(
         raise ValueError(f"marker size must be a positive number of metres, got {marker_size}")
     if marker_size is not None and metres_per_unit is not None:
         raise ValueError("give the scale once: a marker size or metres per unit, not both")
+    if stereo and depth_fit is not None:
+        raise ValueError("choose one source of depth maps: stereo or a depth fit, not both")
     say = log or (lambda _m: None)
     t_start = time.perf_counter()
     capture = read_photo_capture(photos)
@@ -279,11 +287,18 @@ def build_capture(
         depth = _write_depths(stage, sfm, unds, frame, progress) if stereo else None
         t_depth = time.perf_counter() - t
         report = _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info, depth)
+        t = time.perf_counter()
+        if depth_fit is not None:
+            say(f"depth fit: {depth_fit.steps} steps per state")
+            cover = fit_depth_maps(stage, PHOTO_STATES, depth_fit, progress=progress)
+            report["fitted_depth"] = {**dataclasses.asdict(depth_fit), "coverage": cover}
+        t_fit = time.perf_counter() - t
         report["timings_s"] = {
             **{k: round(v, 2) for k, v in sfm.timings.items()},
             "undistort_and_features_s": round(t_views, 2),
             "motions_s": round(t_motions, 2),
             "stereo_depth_s": round(t_depth, 2),
+            "depth_fit_s": round(t_fit, 2),
             "total_s": round(time.perf_counter() - t_start, 2),
         }
         atomic_write_json(stage / "report.json", report)

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np  # noqa: F401
 from PIL import Image  # noqa: F401
 
+from train_world.capture.fitted_depth import DepthFit
+
 __all__ = ["main"]
 
 
@@ -72,6 +74,16 @@ def _parser() -> argparse.ArgumentParser:
         help="also write a depth map of every view from multi-view stereo (0 where none, e.g. bare walls); "
         "training on the capture then starts from it",
     )
+    p.add_argument(
+        "--fit-depth",
+        type=int,
+        nargs="?",
+        const=DepthFit.steps,
+        default=None,
+        metavar="STEPS",
+        help="also write a depth map of every view from a first reconstruction of each state (STEPS training "
+        f"steps, default {DepthFit.steps}; minutes on a CPU); training on the capture then starts from it",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
@@ -86,6 +98,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--out is required (or --extract-frames N to sample videos to frames)")
     if args.marker_size is not None and args.metres_per_unit is not None:
         parser.error("give the scale once: --marker-size or --metres-per-unit")
+    if args.stereo and args.fit_depth is not None:
+        parser.error("choose one source of depth maps: --stereo or --fit-depth")
+    if args.fit_depth is not None and args.fit_depth < 100:
+        parser.error(f"--fit-depth needs at least 100 steps, got {args.fit_depth}")
     if args.marker_size is not None and not args.marker_size > 0:
         parser.error(f"--marker-size must be a positive number of metres, got {args.marker_size}")
     if args.metres_per_unit is not None and not args.metres_per_unit > 0:
@@ -108,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
             marker_id=args.marker_id,
             overwrite=args.overwrite,
             stereo=args.stereo,
+            depth_fit=None if args.fit_depth is None else DepthFit(steps=args.fit_depth),
             progress=not args.quiet,
             log=None if args.quiet else say,
         )

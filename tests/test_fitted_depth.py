@@ -1,0 +1,128 @@
+"""Depth maps from a first reconstruction (train_world.capture.fitted_depth) on a tiny synthetic capture whose
+true depth is known: the capture's depth maps are taken away, fitted again and compared with the truth."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from tests._captures import tiny_capture
+from train_world.capture import load_capture
+from train_world.capture.fitted_depth import DepthFit, fit_depth_maps, fitted_depths, rendered_depths
+from train_world.capture.format import DEPTH_SCALE
+
+FIT = DepthFit(steps=300, max_gaussians=5000)
+
+
+def _strip_depth(capture):
+    """The capture without its depth maps (as a capture from photos comes)."""
+    for s in ("state1", "state2"):
+        tj = capture / s / "transforms.json"
+        doc = json.loads(tj.read_text())
+        for f in doc["frames"]:
+            f.pop("depth_path", None)
+        tj.write_text(json.dumps(doc))
+        shutil.rmtree(capture / s / "depth", ignore_errors=True)
+    return capture
+
+
+@pytest.fixture(scope="module")
+def truth(tmp_path_factory):
+    return tiny_capture(tmp_path_factory.mktemp("truth"))
+
+
+@pytest.fixture(scope="module")
+def fitted(truth, tmp_path_factory):
+    cap = tmp_path_factory.mktemp("fitted") / "cap"
+    shutil.copytree(truth, cap)
+    _strip_depth(cap)
+    assert load_capture(cap, ["state1"]).states["state1"].depths is None
+    return cap, fit_depth_maps(cap, ["state1", "state2"], FIT)
+
+
+def test_rendered_depth_is_camera_z_where_opaque():
+    import torch
+
+    from train_world.single_state.field import SegmentedField
+
+    # two small opaque Gaussians off the optical axis, where camera z and distance differ by 6-13 %
+    pts = torch.tensor([[0.6, 0.4, 2.0], [-0.5, -0.5, 1.0]], dtype=torch.float64)
+    field = SegmentedField.from_points(pts, torch.full((2, 3), 0.5, dtype=torch.float64),
+                                       torch.full((2,), 0.04, dtype=torch.float64), sh_degree=0, num_features=4,
+                                       opacity=0.999)  # fmt: skip
+    K = torch.tensor([[[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]])
+    d = rendered_depths(field, torch.eye(4)[None], K, 32, 32, torch.zeros(3), 0.5)[0].numpy()
+    for (x, y, z), want in zip(pts.numpy(), (2.0, 1.0), strict=True):
+        u, v = int(32 * x / z + 16), int(32 * y / z + 16)  # the pixel the centre falls in
+        assert d[v, u] == pytest.approx(want, rel=1e-4)
+    assert (d > 0).mean() < 0.1 and d[0, 31] == 0.0  # nothing opaque elsewhere: no depth
+
+
+def test_fitted_depth_is_written_into_the_capture(fitted):
+    cap, coverage = fitted
+    for s in ("state1", "state2"):
+        est = load_capture(cap, [s]).states[s]
+        assert est.depths is not None and est.depths.shape[0] == 16
+        d = est.depths.numpy()
+        assert coverage[s] == pytest.approx(float((d > 0).mean()), abs=1e-4) and coverage[s] > 0.8
+        frames = json.loads((cap / s / "transforms.json").read_text())["frames"]
+        assert all(f["depth_path"] == f"depth/{f['file_path'].split('/')[-1]}" for f in frames)
+
+
+def test_training_starts_from_the_fitted_depth(fitted):
+    from train_world.single_state.data import load_training_data
+    from train_world.single_state.presets import TrainConfig, get_preset
+    from train_world.single_state.trainer import Trainer
+
+    cap, _ = fitted
+    cfg = TrainConfig(preset=get_preset("quick"), state="state1", holdout_every=0)
+    data = load_training_data(cap, cfg)
+    cover = float((data.depths > 0).double().mean())
+    means = Trainer(data, cfg).field.means.detach().double().numpy()
+    assert len(means) == round(cover * get_preset("quick").num_init_points)  # back-projected, in proportion
+
+
+def test_the_maps_are_the_fit_to_the_millimetre_and_the_fit_is_deterministic(truth, fitted, tmp_path):
+    cap, _ = fitted
+    again = _strip_depth(shutil.copytree(truth, tmp_path / "again"))
+    d = fitted_depths(again, "state1", FIT).numpy()  # the same fit once more, from the same start and seed
+    written = load_capture(cap, ["state1"]).states["state1"].depths.numpy()
+    units = np.rint(d.astype(np.float64) / DEPTH_SCALE).astype(np.float32)
+    assert np.array_equal(units * np.float32(DEPTH_SCALE), written)
+
+
+def test_a_capture_with_depth_is_refused_and_left_unchanged(truth):
+    before = (truth / "state1" / "transforms.json").read_bytes()
+    with pytest.raises(ValueError, match="has depth maps already"):
+        fit_depth_maps(truth, ["state1"], FIT)
+    assert (truth / "state1" / "transforms.json").read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    "kw, what",
+    [({"steps": 10}, "at least 100 steps"), ({"max_gaussians": 10}, "1000 Gaussians"),
+     ({"min_alpha": 1.0}, "min_alpha")],
+)  # fmt: skip
+def test_bad_settings_are_refused(kw, what):
+    with pytest.raises(ValueError, match=what):
+        DepthFit(**kw)
+
+
+def test_one_source_of_depth_maps(tmp_path, capsys):
+    from train_world.cli import capture as capture_cli
+
+    with pytest.raises(SystemExit) as e:
+        capture_cli.main([str(tmp_path), "--out", str(tmp_path / "out"), "--stereo", "--fit-depth"])
+    assert e.value.code == 2 and "--stereo or --fit-depth" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        capture_cli.main([str(tmp_path), "--out", str(tmp_path / "out"), "--fit-depth", "5"])
+    assert "at least 100 steps" in capsys.readouterr().err
+    pytest.importorskip("pycolmap")
+    from train_world.capture.photo_capture import build_capture
+
+    with pytest.raises(ValueError, match="one source of depth maps"):
+        build_capture(tmp_path, tmp_path / "out", stereo=True, depth_fit=DepthFit())
+    assert not (tmp_path / "out").exists()

@@ -1,0 +1,109 @@
+"""Depth maps for a capture that has none, from a first reconstruction of each state.
+
+A capture made from photos has cameras, masks and sparse points but no depth, so training starts from the
+sparse points, the table top, the objects' visual hulls and random points, and much of its Gaussian budget goes
+to what the random start leaves floating. :func:`fit_depth_maps` trains one field per state on all of that
+state's views from that same start, renders its expected depth (accumulated depth over alpha) at every view
+where the alpha exceeds ``min_alpha``, and writes the maps into the capture (``<state>/depth/<stem>.png``,
+uint16 in ``DEPTH_SCALE`` units, 0 = none; each frame of ``transforms.json`` gains its ``depth_path``).
+Training on the capture then starts from points back-projected from them, on every surface the photos show,
+bare walls included, as it does from a capture with measured depth. Unlike multi-view stereo
+(:mod:`.mvs`) the maps need no texture; they are only as right as the first fit, and serve only as the start
+(``dsg-train`` uses depth for nothing else unless ``--depth-weight`` is given).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from train_world.capture.files import read_json
+from train_world.capture.format import DEPTH_SCALE, atomic_write_bytes, atomic_write_json, encode_png
+
+if TYPE_CHECKING:
+    import torch
+
+__all__ = ["DepthFit", "fit_depth_maps", "fitted_depths", "rendered_depths"]
+
+
+@dataclasses.dataclass(frozen=True)
+class DepthFit:
+    """The first reconstruction behind :func:`fit_depth_maps`: ``steps`` training steps at most
+    ``max_gaussians`` Gaussians (densification until two thirds of the steps; the ``default`` preset's
+    other settings), depth kept where the render's alpha exceeds ``min_alpha``."""
+
+    steps: int = 3000
+    max_gaussians: int = 60_000
+    min_alpha: float = 0.5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.steps < 100:
+            raise ValueError(f"a depth fit needs at least 100 steps, got {self.steps}")
+        if self.max_gaussians < 1000:
+            raise ValueError(f"a depth fit needs at least 1000 Gaussians, got {self.max_gaussians}")
+        if not 0.0 < self.min_alpha < 1.0:
+            raise ValueError(f"min_alpha must lie in (0, 1), got {self.min_alpha}")
+
+
+def rendered_depths(field, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+                    background: torch.Tensor, min_alpha: float) -> torch.Tensor:  # fmt: skip
+    """Expected depth ``[V,H,W]`` float32 (camera z) of ``field`` at cameras ``viewmats [V,4,4]``,
+    ``Ks [V,3,3]``; 0 where the alpha is at most ``min_alpha``."""
+    import torch
+
+    out = torch.zeros(len(viewmats), height, width)
+    with torch.no_grad():
+        for i in range(len(viewmats)):
+            r = field.render(viewmats[i : i + 1], Ks[i : i + 1], width, height, background=background,
+                             with_features=False, with_depth=True)  # fmt: skip
+            a = r.alpha[0, ..., 0]
+            z = r.depth[0] / a.clamp_min(1e-6)
+            out[i] = torch.where((a > min_alpha) & torch.isfinite(z) & (z > 0), z, torch.zeros_like(z))
+    return out
+
+
+def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: bool = False) -> torch.Tensor:
+    """Depth ``[V,H,W]`` at every view of ``state`` (the order of its ``transforms.json``) from a field trained
+    on all of them (:class:`DepthFit`)."""
+    from train_world.single_state.data import load_training_data
+    from train_world.single_state.presets import TrainConfig, get_preset
+    from train_world.single_state.trainer import Trainer
+
+    preset = get_preset("default", iterations=fit.steps, densify_until=max(1, round(2 * fit.steps / 3)),
+                        max_gaussians=fit.max_gaussians, checkpoint_every=fit.steps)  # fmt: skip
+    config = TrainConfig(preset=preset, seed=fit.seed, state=state, holdout_every=0)
+    data = load_training_data(capture, config)
+    trainer = Trainer(data, config)
+    trainer.train(progress=progress)
+    return rendered_depths(trainer.field, data.viewmats, data.Ks, data.width, data.height, trainer.background,
+                           fit.min_alpha)  # fmt: skip
+
+
+def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool = False) -> dict[str, float]:
+    """Write :func:`fitted_depths` of each of ``states`` into the capture folder ``capture`` (module
+    docstring); returns each state's share of pixels with depth. The capture must have no depth maps yet."""
+    capture = Path(capture)
+    coverage = {}
+    for s in states:
+        tj = capture / s / "transforms.json"
+        doc = read_json(tj)
+        frames = doc["frames"]
+        if any("depth_path" in f for f in frames):
+            raise ValueError(f"{tj}: the capture has depth maps already; a depth fit is for captures without")
+        depth = fitted_depths(capture, s, fit, progress=progress)
+        if len(depth) != len(frames):
+            raise RuntimeError(f"{tj}: {len(frames)} frames but {len(depth)} depth maps")
+        units = np.rint(depth.numpy().astype(np.float64) / DEPTH_SCALE)
+        units = np.where(units <= np.iinfo(np.uint16).max, units, 0).astype(np.uint16)
+        for f, d in zip(frames, units, strict=True):
+            rel = f"depth/{Path(f['file_path']).stem}.png"
+            atomic_write_bytes(capture / s / rel, encode_png(d))
+            f["depth_path"] = rel
+        doc["depth_unit_scale_factor"] = DEPTH_SCALE
+        atomic_write_json(tj, doc)
+        coverage[s] = round(float((units > 0).mean()), 4)
+    return coverage

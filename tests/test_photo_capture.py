@@ -421,6 +421,7 @@ def test_no_depth_without_stereo(estimated):
     frames = json.loads((out / "state1" / "transforms.json").read_text())["frames"]
     assert not any("depth_path" in f for f in frames)
     assert report["stereo_depth_coverage"] is None and report["timings_s"]["stereo_depth_s"] < 0.01
+    assert report["fitted_depth"] is None and report["timings_s"]["depth_fit_s"] < 0.01
 
 
 def test_training_on_stereo_depth_starts_in_proportion_to_it(stereo):

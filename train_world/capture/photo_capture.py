@@ -208,9 +208,8 @@ def build_capture(
     ``stereo``: depth maps of every view from multi-view stereo (:mod:`.mvs`); training on the capture then
     starts from them instead of the table top, hulls and random points. ``depth_fit``: depth maps of every view
     from a first reconstruction of each state (:mod:`.fitted_depth`), likewise the training's start.
-    ``reconstruct``: the structure-from-motion
-    step, called as :func:`.sfm.run_sfm` is (a benchmark passes one that puts known cameras in place,
-    :func:`.compare.with_true_cameras`)."""
+    ``reconstruct``: the structure-from-motion step, called as :func:`.sfm.run_sfm` is (a benchmark passes one
+    that puts known cameras in place, :func:`.compare.with_true_cameras`)."""
     if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
         raise ValueError(f"metres per unit must be a positive number, got {metres_per_unit}")
     if marker_size is not None and not (np.isfinite(marker_size) and marker_size > 0):
@@ -288,6 +287,7 @@ def build_capture(
         t_depth = time.perf_counter() - t
         report = _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info, depth)
         t = time.perf_counter()
+        report["fitted_depth"] = None
         if depth_fit is not None:
             say(f"depth fit: {depth_fit.steps} steps per state")
             cover = fit_depth_maps(stage, PHOTO_STATES, depth_fit, progress=progress)

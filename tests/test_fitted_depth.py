@@ -85,10 +85,12 @@ def test_training_starts_from_the_fitted_depth(fitted):
     assert len(means) == round(cover * get_preset("quick").num_init_points)  # back-projected, in proportion
 
 
-def test_the_maps_are_the_fit_to_the_millimetre_and_the_fit_is_deterministic(truth, fitted, tmp_path):
+def test_the_maps_are_the_fit_to_the_millimetre_and_the_fit_is_deterministic(truth, fitted, tmp_path, capsys):
     cap, _ = fitted
     again = _strip_depth(shutil.copytree(truth, tmp_path / "again"))
-    d = fitted_depths(again, "state1", FIT).numpy()  # the same fit once more, from the same start and seed
+    # the same fit once more, from the same start and seed; its progress bar names what it trains
+    d = fitted_depths(again, "state1", FIT, progress=True).numpy()
+    assert "depth fit state1" in capsys.readouterr().err
     written = load_capture(cap, ["state1"]).states["state1"].depths.numpy()
     units = np.rint(d.astype(np.float64) / DEPTH_SCALE).astype(np.float32)
     assert np.array_equal(units * np.float32(DEPTH_SCALE), written)

@@ -17,11 +17,12 @@ from _synth_scenes import SCENE, TINY, make_tiny_capture  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from train_world.capture import load_capture  # noqa: E402
+from train_world.capture.format import depth_to_png_units  # noqa: E402
 from train_world.cli import synth as cli  # noqa: E402
 from train_world.synth.build import build_scene, set_object_poses  # noqa: E402
 from train_world.synth.cameras import look_at_opengl  # noqa: E402
 from train_world.synth.generate import GenerateConfig, generate_scene, rng_for  # noqa: E402
-from train_world.synth.render import SceneRenderer, depth_to_png_units  # noqa: E402
+from train_world.synth.render import SceneRenderer  # noqa: E402
 from train_world.synth.spec import default_scene_names, resolve_scene  # noqa: E402
 from train_world.synth.states import sample_states  # noqa: E402
 

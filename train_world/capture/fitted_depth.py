@@ -18,10 +18,14 @@ import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from train_world.capture.files import read_json
-from train_world.capture.format import DEPTH_SCALE, atomic_write_bytes, atomic_write_json, encode_png
+from train_world.capture.format import (
+    DEPTH_SCALE,
+    atomic_write_bytes,
+    atomic_write_json,
+    depth_to_png_units,
+    encode_png,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -78,7 +82,7 @@ def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: b
     config = TrainConfig(preset=preset, seed=fit.seed, state=state, holdout_every=0)
     data = load_training_data(capture, config)
     trainer = Trainer(data, config)
-    trainer.train(progress=progress)
+    trainer.train(progress=progress, label=f"depth fit {state}")
     return rendered_depths(trainer.field, data.viewmats, data.Ks, data.width, data.height, trainer.background,
                            fit.min_alpha)  # fmt: skip
 
@@ -97,8 +101,7 @@ def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool
         depth = fitted_depths(capture, s, fit, progress=progress)
         if len(depth) != len(frames):
             raise RuntimeError(f"{tj}: {len(frames)} frames but {len(depth)} depth maps")
-        units = np.rint(depth.numpy().astype(np.float64) / DEPTH_SCALE)
-        units = np.where(units <= np.iinfo(np.uint16).max, units, 0).astype(np.uint16)
+        units = depth_to_png_units(depth.numpy())
         for f, d in zip(frames, units, strict=True):
             rel = f"depth/{Path(f['file_path']).stem}.png"
             atomic_write_bytes(capture / s / rel, encode_png(d))

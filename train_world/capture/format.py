@@ -29,6 +29,7 @@ from dsg_gym.io.atomic import atomic_dir, atomic_write_bytes
 
 __all__ = [
     "DEPTH_SCALE",
+    "depth_to_png_units",
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "atomic_write_bytes",
@@ -44,6 +45,15 @@ FORMAT_VERSION = 1
 #: metres per depth-PNG unit (depth PNGs hold uint16 millimetres; 0 means "no depth")
 DEPTH_SCALE = 0.001
 PNG_COMPRESS_LEVEL = 1
+
+
+def depth_to_png_units(depth_m: np.ndarray) -> np.ndarray:
+    """Metres ``[...]`` -> uint16 ``DEPTH_SCALE`` units (millimetres) of a depth PNG; 0 (no depth) where the
+    depth is not finite, rounds to <= 0 or lies beyond 65.535 m."""
+    d = np.asarray(depth_m, dtype=np.float64)
+    units = np.rint(np.where(np.isfinite(d), d, 0.0) / DEPTH_SCALE)
+    units[(units <= 0) | (units > np.iinfo(np.uint16).max)] = 0
+    return units.astype(np.uint16)
 
 
 def encode_png(array: np.ndarray, compress_level: int = PNG_COMPRESS_LEVEL) -> bytes:

@@ -36,11 +36,11 @@ from train_world.capture.cameras import GL_TO_CV
 from train_world.capture.features import ViewFeatures, extract_view_features
 from train_world.capture.fitted_depth import DepthFit, fit_depth_maps
 from train_world.capture.format import (
-    DEPTH_SCALE,
     FORMAT_NAME,
     FORMAT_VERSION,
     atomic_write_bytes,
     atomic_write_json,
+    depth_to_png_units,
     encode_png,
     frame_entry,
     matrix_to_list,
@@ -338,8 +338,7 @@ def _write_depths(stage: Path, sfm: SfmResult, unds: dict, frame, progress: bool
             )
             Ks = np.repeat(unds[s].K[None], len(stems), axis=0)
             depth = stereo_depths(np.stack(images), Ks, w2c, points, progress=lambda: bar.update(1))
-            units = np.rint(depth.astype(np.float64) / DEPTH_SCALE)
-            units = np.where(units <= np.iinfo(np.uint16).max, units, 0).astype(np.uint16)
+            units = depth_to_png_units(depth)
             for stem, d in zip(stems, units, strict=True):
                 atomic_write_bytes(stage / s / "depth" / f"{stem}.png", encode_png(d))
             coverage[s] = round(float((units > 0).mean()), 4)

@@ -335,13 +335,16 @@ class Trainer:
         return stats
 
     # ------------------------------------------------------------------ loop
-    def train(self, *, progress: bool = True, stop_after: int | None = None) -> None:
+    def train(
+        self, *, progress: bool = True, stop_after: int | None = None, label: str = "dsg-train"
+    ) -> None:
         """Run until the preset's iteration count, checkpointing every ``checkpoint_every`` steps and at the
-        end. ``stop_after``: stop after that many steps as if killed (no extra checkpoint; for tests)."""
+        end. ``stop_after``: stop after that many steps as if killed (no extra checkpoint; for tests);
+        ``label``: the progress bar's."""
         p = self.preset
         end = p.iterations if stop_after is None else min(p.iterations, stop_after)
         bar = tqdm(
-            total=p.iterations, initial=self.step, disable=not progress, desc="dsg-train", dynamic_ncols=True
+            total=p.iterations, initial=self.step, disable=not progress, desc=label, dynamic_ncols=True
         )
         t0 = time.perf_counter()
         ema = None

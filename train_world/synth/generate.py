@@ -22,6 +22,7 @@ from train_world.capture.format import (
     FORMAT_NAME,
     FORMAT_VERSION,
     atomic_write_json,
+    depth_to_png_units,
     encode_png,
     matrix_to_list,
     staged_directory,
@@ -29,7 +30,7 @@ from train_world.capture.format import (
 )
 from train_world.synth.build import LIGHTING, build_scene, set_object_poses  # noqa: E402
 from train_world.synth.cameras import orbit_c2w  # noqa: E402
-from train_world.synth.render import SceneRenderer, depth_to_png_units  # noqa: E402
+from train_world.synth.render import SceneRenderer  # noqa: E402
 from train_world.synth.spec import SceneSpec, resolve_scene  # noqa: E402
 from train_world.synth.states import sample_states, verify_with_mujoco  # noqa: E402
 

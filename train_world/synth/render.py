@@ -22,15 +22,7 @@ import numpy as np  # noqa: E402
 
 from train_world.synth.build import CAMERA_LIGHT, BuiltScene  # noqa: E402
 
-__all__ = ["SceneRenderer", "depth_to_png_units"]
-
-
-def depth_to_png_units(depth_m: np.ndarray) -> np.ndarray:
-    """Metres -> uint16 millimetres; 0 (no depth) where depth is not finite, <= 0 or beyond 65.535 m."""
-    d = np.asarray(depth_m, dtype=np.float64)
-    mm = np.rint(np.where(np.isfinite(d), d, 0.0) * 1000.0)
-    mm[(mm <= 0) | (mm > 65535)] = 0
-    return mm.astype(np.uint16)
+__all__ = ["SceneRenderer"]
 
 
 class SceneRenderer:

@@ -5,7 +5,8 @@ motions from photos alone, without training a world.
 [--true-cameras] [--out FILE]``
 
 Per scene: ``dsg-synth --scene S --as-photos [--marker M]`` writes JPEG photos, masks and the true capture
-(``ground_truth/``); ``dsg-capture`` estimates the capture from the photos (timed, with its peak RSS); and
+(``ground_truth/``); ``dsg-capture --depth none`` estimates the capture from the photos (timed, with its peak
+RSS; no depth maps, which only training's start needs); and
 :func:`train_world.capture.compare.compare_captures` scores it against the truth after a similarity fit of the
 camera centres. Metric scale is scored by that similarity's scale (1 when the marker's scale is exact).
 ``--true-cameras`` builds each capture a second time with the truth's cameras in place of the estimated ones
@@ -90,7 +91,7 @@ def scene(
     _run([*SYNTH, "--scene", name, "--as-photos", "--seed", str(seed), "--out", str(photos), "--overwrite",
           "--quiet", *mk, *synth_args], d / "synth.log")  # fmt: skip
     wall, rss = _run(
-        [*CAPTURE, str(photos), "--out", str(est), "--overwrite", "--quiet",
+        [*CAPTURE, str(photos), "--out", str(est), "--overwrite", "--quiet", "--depth", "none",
          *(["--marker-size", str(marker)] if marker else [])],
         d / "capture.log",
     )  # fmt: skip

@@ -6,8 +6,9 @@
 Per scene, each step a fresh process, in ``--work`` (kept) or a temporary folder:
 
 1. ``dsg-synth --scene S --as-photos [--marker M]``: photos, and the true capture under ``ground_truth/``;
-2. ``dsg-capture photos --out est [--marker-size M]``: camera poses, table frame and object motions from the
-   images alone (timed);
+2. ``dsg-capture photos --out est [--marker-size M] [--depth D]``: camera poses, table frame, object motions
+   and depth maps (``--depth``: dsg-capture's default, a first reconstruction of each state) from the images
+   alone (timed);
 3. ``dsg-train est --holdout-every 0``: the world from the photos, every photo training as every true view
    trains the reference (timed, with its peak RSS); with ``--refine-cameras`` its cameras are refined in
    training;
@@ -44,6 +45,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from train_world.cli.capture import DEPTH_SOURCES
 
 from ._results import default_out, write_result
 
@@ -273,17 +276,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--preset", default=None, help="dsg-train preset (default: dsg-train's)")
     p.add_argument("--iterations", type=int, help="dsg-train steps (default: the preset's)")
-    p.add_argument("--stereo", action="store_true", help="dsg-capture --stereo: depth maps from the photos")
     p.add_argument(
-        "--fit-depth",
-        action="store_true",
-        help="dsg-capture --fit-depth: depth maps from a first reconstruction of each state",
+        "--depth",
+        choices=DEPTH_SOURCES,
+        default=None,
+        help="dsg-capture --depth: the photo capture's depth maps (default: dsg-capture's, fit)",
     )
     p.add_argument(
         "--depth-weight",
         type=float,
         metavar="W",
-        help="dsg-train --depth-weight W for the photo world (with --stereo: its stereo depth)",
+        help="dsg-train --depth-weight W for the photo world (on its capture's depth maps)",
     )
     p.add_argument(
         "--refine-cameras",
@@ -297,9 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     train += ["--iterations", str(args.iterations)] if args.iterations else []
     out = args.out or default_out("photo_worlds")
     ev = ["--align-views", str(args.align_views)] if args.align_views else []
-    if args.stereo and args.fit_depth:
-        p.error("choose one source of depth maps: --stereo or --fit-depth")
-    cap = (["--stereo"] if args.stereo else []) + (["--fit-depth"] if args.fit_depth else [])
+    cap = ["--depth", args.depth] if args.depth else []
     photo_train = ["--depth-weight", str(args.depth_weight)] if args.depth_weight is not None else []
     photo_train += ["--refine-cameras"] if args.refine_cameras else []
     r = run(out, scenes, args.work, synth, train, args.marker or None, ev, cap, photo_train)

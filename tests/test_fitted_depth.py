@@ -113,15 +113,36 @@ def test_bad_settings_are_refused(kw, what):
         DepthFit(**kw)
 
 
-def test_one_source_of_depth_maps(tmp_path, capsys):
+def test_dsg_capture_fits_depth_by_default(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("pycolmap")
+    from train_world.capture import photo_capture
     from train_world.cli import capture as capture_cli
 
-    with pytest.raises(SystemExit) as e:
-        capture_cli.main([str(tmp_path), "--out", str(tmp_path / "out"), "--stereo", "--fit-depth"])
-    assert e.value.code == 2 and "--stereo or --fit-depth" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        capture_cli.main([str(tmp_path), "--out", str(tmp_path / "out"), "--fit-depth", "5"])
-    assert "at least 100 steps" in capsys.readouterr().err
+    given = []
+
+    def fake_build(photos, out, **kw):  # what dsg-capture asks of build_capture, without building
+        given.append((kw["stereo"], kw["depth_fit"]))
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(photo_capture, "build_capture", fake_build)
+    base = [str(tmp_path), "--out", str(tmp_path / "out"), "--quiet"]
+    for extra in ([], ["--fit-steps", "1500"], ["--depth", "stereo"], ["--depth", "none"]):
+        assert capture_cli.main([*base, *extra]) == 2 and "stop here" in capsys.readouterr().err
+    assert given == [(False, DepthFit()), (False, DepthFit(steps=1500)), (True, None), (False, None)]
+
+
+def test_bad_depth_options_are_refused(tmp_path, capsys):
+    from train_world.cli import capture as capture_cli
+
+    for extra, what in (
+        (["--depth", "stereo", "--fit-steps", "3000"], "--fit-steps is for --depth fit, not --depth stereo"),
+        (["--fit-steps", "5"], "at least 100 steps"),
+        (["--depth", "lidar"], "invalid choice: 'lidar'"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            capture_cli.main([str(tmp_path), "--out", str(tmp_path / "out"), *extra])
+        assert e.value.code == 2 and what in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
     pytest.importorskip("pycolmap")
     from train_world.capture.photo_capture import build_capture
 

@@ -394,7 +394,7 @@ def test_the_background_points_are_written_and_start_training(photos, estimated)
 @pytest.fixture(scope="module")
 def stereo(photos, tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("stereo") / "estimated"
-    assert capture_cli.main([str(photos), "--out", str(out), "--quiet", "--stereo"]) == 0
+    assert capture_cli.main([str(photos), "--out", str(out), "--quiet", "--depth", "stereo"]) == 0
     return out, json.loads((out / "report.json").read_text())
 
 
@@ -415,7 +415,7 @@ def test_stereo_depth_is_written_and_agrees_with_the_truth(photos, stereo):
     assert np.mean(np.abs(r - 1.0) < 0.03) > 0.9
 
 
-def test_no_depth_without_stereo(estimated):
+def test_no_depth_maps_unless_asked(estimated):
     out, report = estimated
     assert not (out / "state1" / "depth").exists()
     frames = json.loads((out / "state1" / "transforms.json").read_text())["frames"]

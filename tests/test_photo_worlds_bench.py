@@ -24,11 +24,14 @@ def test_photo_worlds_quick(tmp_path):
         "quick",
         "--iterations",
         "60",
+        "--depth",
+        "none",
     ]
     assert main([*args, "--work", str(tmp_path / "work"), "--align-views", "4"]) == 0
     r = json.loads(out.read_text())
     s = r["scenes"]["four_mixed"]
     assert r["config"]["eval_args"] == ["--align-views", "4"]
+    assert r["config"]["capture_args"] == ["--depth", "none"]
     assert len(s["motions"]) == 4  # four objects, each against the truth, as estimated and as refined
     for m in s["motions"].values():
         assert 0 <= m["estimate_mm"] < 50 and 0 <= m["refined_rotation_mod_symmetry_deg"] < 20
@@ -85,8 +88,8 @@ def test_photo_worlds_refuses_unknown_scenes(tmp_path, capsys):
     assert not (tmp_path / "x.json").exists()
 
 
-def test_photo_worlds_takes_one_source_of_depth(tmp_path, capsys):
+def test_photo_worlds_refuses_unknown_depth_sources(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
-        main(["--out", str(tmp_path / "x.json"), "--scenes", "two_blocks", "--stereo", "--fit-depth"])
-    assert e.value.code == 2 and "--stereo or --fit-depth" in capsys.readouterr().err
+        main(["--out", str(tmp_path / "x.json"), "--scenes", "two_blocks", "--depth", "lidar"])
+    assert e.value.code == 2 and "invalid choice: 'lidar'" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()

@@ -5,6 +5,7 @@ Examples::
     dsg-capture photos/ --out data/my_table                       # units arbitrary (recorded as "unknown")
     dsg-capture photos/ --out data/my_table --metres-per-unit 0.62 --overwrite
     dsg-capture photos/ --out data/my_table --marker-size 0.06  # metric, from an ArUco marker in the photos
+    dsg-capture photos/ --out data/my_table --depth none        # no depth maps: seconds, not minutes
     dsg-capture photos/ --extract-frames 40     # state1/walk.mp4 -> state1/images/frame_0000.jpg ... (then masks)
 
 ``photos/`` holds ``state1/`` and ``state2/``, each with ``images/`` (JPEG or PNG) and ``masks/`` (one PNG of
@@ -26,7 +27,10 @@ from PIL import Image  # noqa: F401
 
 from train_world.capture.fitted_depth import DepthFit
 
-__all__ = ["main"]
+__all__ = ["DEPTH_SOURCES", "main"]
+
+#: ``--depth``: where the capture's depth maps come from
+DEPTH_SOURCES = ("fit", "stereo", "none")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -69,20 +73,20 @@ def _parser() -> argparse.ArgumentParser:
         "--marker-id", type=int, default=None, help="the marker's id (default: the lowest id seen)"
     )
     p.add_argument(
-        "--stereo",
-        action="store_true",
-        help="also write a depth map of every view from multi-view stereo (0 where none, e.g. bare walls); "
-        "training on the capture then starts from it",
+        "--depth",
+        choices=DEPTH_SOURCES,
+        default="fit",
+        help="the depth maps every view gets, which training starts from: 'fit' (default) renders them from "
+        "a first reconstruction of each state (--fit-steps training steps per state; minutes on a CPU), "
+        "'stereo' from multi-view stereo (0 where none, e.g. bare walls), 'none' writes none (training "
+        "then starts from the sparse points, the table top, the objects' hulls and random points)",
     )
     p.add_argument(
-        "--fit-depth",
+        "--fit-steps",
         type=int,
-        nargs="?",
-        const=DepthFit.steps,
         default=None,
         metavar="STEPS",
-        help="also write a depth map of every view from a first reconstruction of each state (STEPS training "
-        f"steps, default {DepthFit.steps}; minutes on a CPU); training on the capture then starts from it",
+        help=f"training steps of each state's first reconstruction with --depth fit (default {DepthFit.steps})",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -98,10 +102,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--out is required (or --extract-frames N to sample videos to frames)")
     if args.marker_size is not None and args.metres_per_unit is not None:
         parser.error("give the scale once: --marker-size or --metres-per-unit")
-    if args.stereo and args.fit_depth is not None:
-        parser.error("choose one source of depth maps: --stereo or --fit-depth")
-    if args.fit_depth is not None and args.fit_depth < 100:
-        parser.error(f"--fit-depth needs at least 100 steps, got {args.fit_depth}")
+    if args.fit_steps is not None and args.depth != "fit":
+        parser.error(f"--fit-steps is for --depth fit, not --depth {args.depth}")
+    if args.fit_steps is not None and args.fit_steps < 100:
+        parser.error(f"--fit-steps needs at least 100 steps, got {args.fit_steps}")
     if args.marker_size is not None and not args.marker_size > 0:
         parser.error(f"--marker-size must be a positive number of metres, got {args.marker_size}")
     if args.metres_per_unit is not None and not args.metres_per_unit > 0:
@@ -123,8 +127,8 @@ def main(argv: list[str] | None = None) -> int:
             marker_size=args.marker_size,
             marker_id=args.marker_id,
             overwrite=args.overwrite,
-            stereo=args.stereo,
-            depth_fit=None if args.fit_depth is None else DepthFit(steps=args.fit_depth),
+            stereo=args.depth == "stereo",
+            depth_fit=DepthFit(steps=args.fit_steps or DepthFit.steps) if args.depth == "fit" else None,
             progress=not args.quiet,
             log=None if args.quiet else say,
         )

@@ -51,7 +51,7 @@ def depth_to_png_units(depth_m: np.ndarray) -> np.ndarray:
     """Metres ``[...]`` -> uint16 ``DEPTH_SCALE`` units (millimetres) of a depth PNG; 0 (no depth) where the
     depth is not finite, rounds to <= 0 or lies beyond 65.535 m."""
     d = np.asarray(depth_m, dtype=np.float64)
-    units = np.rint(np.where(np.isfinite(d), d, 0.0) / DEPTH_SCALE)
+    units = np.rint(np.where(np.isfinite(d), d, 0.0) * (1.0 / DEPTH_SCALE))  # 1000.0 exactly
     units[(units <= 0) | (units > np.iinfo(np.uint16).max)] = 0
     return units.astype(np.uint16)
 

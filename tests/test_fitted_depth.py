@@ -61,6 +61,26 @@ def test_rendered_depth_is_camera_z_where_opaque():
     assert (d > 0).mean() < 0.1 and d[0, 31] == 0.0  # nothing opaque elsewhere: no depth
 
 
+def test_faint_gaussians_do_not_pull_the_depth_nearer():
+    import torch
+
+    from train_world.single_state.field import SegmentedField
+
+    # an opaque Gaussian at z = 2 behind a faint one (opacity 0.05) at z = 1 on the same ray
+    pts = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    field = SegmentedField.from_points(pts, torch.full((2, 3), 0.5, dtype=torch.float64),
+                                       torch.tensor([0.08, 0.04], dtype=torch.float64), sh_degree=0,
+                                       num_features=4, opacity=0.999)  # fmt: skip
+    with torch.no_grad():
+        field.opacity_logits[1] = torch.logit(torch.tensor(0.05))
+    K = torch.tensor([[[32.0, 0.0, 16.0], [0.0, 32.0, 16.0], [0.0, 0.0, 1.0]]])
+    every = rendered_depths(field, torch.eye(4)[None], K, 32, 32, torch.zeros(3), 0.5)[0, 16, 16].item()
+    opaque = rendered_depths(field, torch.eye(4)[None], K, 32, 32, torch.zeros(3), 0.5, 0.1)[0, 16, 16].item()
+    assert opaque == pytest.approx(2.0, rel=1e-4)
+    assert every < 1.99  # the faint one in front pulls the expected depth towards the camera
+    assert DepthFit().min_opacity == 0.2
+
+
 def test_fitted_depth_is_written_into_the_capture(fitted):
     cap, coverage = fitted
     for s in ("state1", "state2"):
@@ -106,7 +126,7 @@ def test_a_capture_with_depth_is_refused_and_left_unchanged(truth):
 @pytest.mark.parametrize(
     "kw, what",
     [({"steps": 10}, "at least 100 steps"), ({"max_gaussians": 10}, "1000 Gaussians"),
-     ({"min_alpha": 1.0}, "min_alpha")],
+     ({"min_alpha": 1.0}, "min_alpha"), ({"min_opacity": 1.0}, "min_opacity")],
 )  # fmt: skip
 def test_bad_settings_are_refused(kw, what):
     with pytest.raises(ValueError, match=what):

@@ -13,9 +13,13 @@ from _captures import tiny_capture
 
 from train_world.single_state.data import load_training_data
 from train_world.single_state.init import (
+    ROOM_DEPTHS,
+    ROOM_SHARE,
     TABLE_SHARE,
     _pixels,
+    camera_centres,
     object_hull_points,
+    room_points,
     table_points,
     tabletop_points,
 )
@@ -70,6 +74,35 @@ def test_hull_points_sit_in_their_object(data):
     assert np.all((cols >= 0) & (cols <= 1)) and cols.std() > 0.05
 
 
+def test_room_points_lie_on_background_rays_out_to_the_room(data):
+    d, _, _ = data
+    box = _box(d)
+    one = (d.images[:1], d.classes[:1], d.viewmats[:1], d.Ks[:1])  # every point from view 0
+    P, cols, ids = room_points(box, 4000, *one, np.random.default_rng(4))
+    bg = float((d.classes[0] == 0).double().mean())
+    assert 0.8 * bg * 4000 < len(P) <= 4000 and not ids.any()  # object pixels' draws dropped
+    u, v, ok = _pixels(P, d.viewmats[0], d.Ks[0], d.width, d.height)
+    assert ok.all() and np.all(d.classes[0].numpy()[v, u] == 0)
+    assert np.allclose(cols, d.images[0].numpy()[v, u])  # coloured like the pixel it was drawn on
+    vm = d.viewmats[0].double().numpy()
+    z = (P @ vm[:3, :3].T + vm[:3, 3])[:, 2]
+    centre = np.array([box[:, 0].mean(), box[:, 1].mean(), box[0, 2]])
+    dist = np.linalg.norm(camera_centres(d.viewmats[:1])[0] - centre)
+    near, far = ROOM_DEPTHS[0] * dist, ROOM_DEPTHS[1] * dist
+    assert np.all((z >= near * (1 - 1e-9)) & (z <= far * (1 + 1e-9)))
+    inv = (1 / z - 1 / far) / (1 / near - 1 / far)  # uniform in inverse depth: uniform on [0, 1]
+    assert abs(inv.mean() - 0.5) < 0.03 and abs(np.median(inv) - 0.5) < 0.04
+    inside = np.all((P >= box[0]) & (P <= box[1]), axis=1)
+    assert (~inside).mean() > 0.3  # many lie beyond the table box (the room)
+    again = room_points(box, 4000, *one, np.random.default_rng(4))
+    assert all(np.array_equal(x, y) for x, y in zip((P, cols, ids), again))
+    # without masks every draw is kept
+    assert (
+        len(room_points(box, 500, d.images[:1], None, d.viewmats[:1], d.Ks[:1], np.random.default_rng(5))[0])
+        == 500
+    )
+
+
 def test_tabletop_points_are_deterministic_and_within_the_budget(data):
     d, _, _ = data
     a = tabletop_points(_box(d), 3000, d.images, d.classes, d.viewmats, d.Ks, np.random.default_rng(2))
@@ -78,6 +111,9 @@ def test_tabletop_points_are_deterministic_and_within_the_budget(data):
     P, _, ids = a
     assert len(P) == 3000 and 0.5 * TABLE_SHARE * 3000 < (P[:, 2] == 0).sum() <= TABLE_SHARE * 3000
     assert ids.max() >= 1
+    lo, hi = _box(d)
+    outside = ~np.all((P >= lo - 1e-9) & (P <= hi + 1e-9), axis=1)  # only room points leave the box
+    assert 0.1 * ROOM_SHARE * 3000 < outside.sum() < ROOM_SHARE * 3000
 
 
 def test_training_without_depth_starts_on_the_table_and_in_the_objects(data):

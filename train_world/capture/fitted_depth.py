@@ -37,11 +37,14 @@ __all__ = ["DepthFit", "fit_depth_maps", "fitted_depths", "rendered_depths"]
 class DepthFit:
     """The first reconstruction behind :func:`fit_depth_maps`: ``steps`` training steps at most
     ``max_gaussians`` Gaussians (densification until two thirds of the steps; the ``default`` preset's
-    other settings), depth kept where the render's alpha exceeds ``min_alpha``."""
+    other settings); its depth rendered from the Gaussians of opacity above ``min_opacity`` and kept where
+    the render's alpha exceeds ``min_alpha``. The nearly transparent Gaussians that a fit leaves floating
+    (what is left of the random start) would pull every expected depth towards the camera."""
 
     steps: int = 3000
     max_gaussians: int = 60_000
     min_alpha: float = 0.5
+    min_opacity: float = 0.2
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -51,19 +54,22 @@ class DepthFit:
             raise ValueError(f"a depth fit needs at least 1000 Gaussians, got {self.max_gaussians}")
         if not 0.0 < self.min_alpha < 1.0:
             raise ValueError(f"min_alpha must lie in (0, 1), got {self.min_alpha}")
+        if not 0.0 <= self.min_opacity < 1.0:
+            raise ValueError(f"min_opacity must lie in [0, 1), got {self.min_opacity}")
 
 
 def rendered_depths(field, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
-                    background: torch.Tensor, min_alpha: float) -> torch.Tensor:  # fmt: skip
-    """Expected depth ``[V,H,W]`` float32 (camera z) of ``field`` at cameras ``viewmats [V,4,4]``,
-    ``Ks [V,3,3]``; 0 where the alpha is at most ``min_alpha``."""
+                    background: torch.Tensor, min_alpha: float, min_opacity: float = 0.0) -> torch.Tensor:  # fmt: skip
+    """Expected depth ``[V,H,W]`` float32 (camera z) of ``field``'s Gaussians of opacity above ``min_opacity``
+    at cameras ``viewmats [V,4,4]``, ``Ks [V,3,3]``; 0 where their alpha is at most ``min_alpha``."""
     import torch
 
     out = torch.zeros(len(viewmats), height, width)
     with torch.no_grad():
+        mask = field.opacities().detach() > min_opacity if min_opacity > 0 else None
         for i in range(len(viewmats)):
             r = field.render(viewmats[i : i + 1], Ks[i : i + 1], width, height, background=background,
-                             with_features=False, with_depth=True)  # fmt: skip
+                             with_features=False, with_depth=True, mask=mask)  # fmt: skip
             a = r.alpha[0, ..., 0]
             z = r.depth[0] / a.clamp_min(1e-6)
             out[i] = torch.where((a > min_alpha) & torch.isfinite(z) & (z > 0), z, torch.zeros_like(z))
@@ -84,7 +90,7 @@ def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: b
     trainer = Trainer(data, config)
     trainer.train(progress=progress, label=f"depth fit {state}")
     return rendered_depths(trainer.field, data.viewmats, data.Ks, data.width, data.height, trainer.background,
-                           fit.min_alpha)  # fmt: skip
+                           fit.min_alpha, fit.min_opacity)  # fmt: skip
 
 
 def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool = False) -> dict[str, float]:

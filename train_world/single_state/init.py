@@ -1,8 +1,9 @@
 """Initial Gaussians: back-projected depth where a capture has it, else points placed from what the capture does
 know (led by the capture's sparse structure-from-motion points where it has them, :mod:`train_world.capture.points`):
 random points carved by silhouettes (NeRF-Blender RGBA data), points on the table and inside each object's visual
-hull, then random points in the table box (a tabletop capture with object masks, as ``dsg-capture`` makes from
-photos; :func:`tabletop_points`), or random points in the scene bounds.
+hull, then points on background pixels' rays out to the room around the table and random points in the table box
+(a tabletop capture with object masks, as ``dsg-capture`` makes from photos; :func:`tabletop_points`), or random
+points in the scene bounds.
 
 Also the scene extent (3DGS: 1.1 x the largest camera distance from the cameras' centroid) that scales the
 position learning rate and the clone/split threshold.
@@ -23,6 +24,7 @@ __all__ = [
     "object_hull_points",
     "points_from_depth",
     "points_in_bounds",
+    "room_points",
     "scene_bounds_from_cameras",
     "scene_extent",
     "table_points",
@@ -32,6 +34,9 @@ __all__ = [
 #: :func:`tabletop_points`: the share of the point budget on the table top, and how many candidates per budgeted
 #: point are tried against the objects' masks
 TABLE_SHARE, HULL_CANDIDATES = 0.1, 6
+#: :func:`tabletop_points`: the share of what the table and hulls leave of the budget that goes to
+#: :func:`room_points`, and the depths of those (times each camera's distance to the table's centre)
+ROOM_SHARE, ROOM_DEPTHS = 0.5, (0.5, 4.0)
 
 
 def camera_centres(viewmats: torch.Tensor) -> np.ndarray:
@@ -183,18 +188,49 @@ def object_hull_points(
     return P[keep], cols[keep], k[keep]
 
 
+def room_points(
+    box: np.ndarray, n: int, images, classes, viewmats, Ks, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Up to ``n`` points on the rays of random background pixels (class 0 of ``classes [V,H,W]``; any pixel
+    when ``classes`` is None) of random training views, each at a depth uniform in inverse depth between
+    :data:`ROOM_DEPTHS` times its camera's distance to the centre of ``box``'s bottom face (the table top), and
+    coloured like its pixel (``images [V,H,W,3]`` in [0, 1]). Returns points, colours and class ids (0).
+
+    The walls and floor around a table lie beyond any box around it; points there give densification material
+    that no box-bound start has. Draws for object pixels are dropped, so fewer than ``n`` may come back."""
+    V, H, W = images.shape[:3]
+    lo, hi = np.asarray(box, dtype=np.float64)
+    centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+    view = rng.integers(0, V, n)
+    u, v = rng.random(n) * W, rng.random(n) * H
+    row, col = np.minimum(v.astype(np.int64), H - 1), np.minimum(u.astype(np.int64), W - 1)
+    keep = np.ones(n, bool) if classes is None else classes.numpy()[view, row, col] == 0
+    vm, K = viewmats.detach().double().numpy()[view], Ks.detach().double().numpy()[view]
+    dist = np.linalg.norm(camera_centres(viewmats)[view] - centre, axis=1)
+    near, far = ROOM_DEPTHS[0] * dist, ROOM_DEPTHS[1] * dist
+    q = rng.random(n)
+    z = 1.0 / ((1.0 - q) / near + q / far)
+    cam = np.stack([(u - K[:, 0, 2]) / K[:, 0, 0] * z, (v - K[:, 1, 2]) / K[:, 1, 1] * z, z], 1)
+    world = np.einsum("nji,nj->ni", vm[:, :3, :3], cam - vm[:, :3, 3])  # R^T (p - t)
+    cols = images.numpy()[view, row, col].astype(np.float64)
+    return world[keep], cols[keep], np.zeros(int(keep.sum()), np.int64)
+
+
 def tabletop_points(
     box: np.ndarray, n: int, images, classes, viewmats, Ks, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Initial points of a tabletop capture without depth but with object masks (``dsg-capture``'s): a
     :data:`TABLE_SHARE` of the budget ``n`` on the table top (:func:`table_points`), then the objects' visual
     hulls (:func:`object_hull_points`, from ``HULL_CANDIDATES * n`` candidates in ``box``, the table up to half
-    its width in height), then random points in ``box`` up to ``n`` (3DGS's random start: raw material that
-    densification moves to what the rest misses). ``images [V,H,W,3]``, ``classes [V,H,W]`` (0: background),
-    ``viewmats``, ``Ks``: the training views."""
+    its width in height), then what is left of ``n``: a :data:`ROOM_SHARE` of it on background pixels' rays out
+    to the room around the table (:func:`room_points`), the rest random points in ``box`` (3DGS's random start:
+    raw material that densification moves to what the others miss). ``images [V,H,W,3]``, ``classes [V,H,W]``
+    (0: background), ``viewmats``, ``Ks``: the training views."""
     table = table_points(box, int(TABLE_SHARE * n), images, classes, viewmats, Ks, rng)
     hull = object_hull_points(box, HULL_CANDIDATES * n, images, classes, viewmats, Ks, rng)
-    parts = (table, hull, points_in_bounds(box, max(0, n - len(table[0]) - len(hull[0])), rng))
+    rest = max(0, n - len(table[0]) - len(hull[0]))
+    room = room_points(box, int(ROOM_SHARE * rest), images, classes, viewmats, Ks, rng)
+    parts = (table, hull, room, points_in_bounds(box, rest - len(room[0]), rng))
     return tuple(np.concatenate([p[j] for p in parts]) for j in range(3))
 
 

@@ -1,11 +1,12 @@
 """Depth maps for a capture that has none, from a first reconstruction of each state.
 
 A capture made from photos has cameras, masks and sparse points but no depth, so training starts from the
-sparse points, the table top, the objects' visual hulls and random points, and much of its Gaussian budget goes
-to what the random start leaves floating. :func:`fit_depth_maps` trains one field per state on all of that
-state's views from that same start, renders its expected depth (accumulated depth over alpha) at every view
-where the alpha exceeds ``min_alpha``, and writes the maps into the capture (``<state>/depth/<stem>.png``,
-uint16 in ``DEPTH_SCALE`` units, 0 = none; each frame of ``transforms.json`` gains its ``depth_path``).
+sparse points, the table top, the objects' visual hulls, points out to the room and random points, and much of
+its Gaussian budget goes to what the random start leaves floating. :func:`fit_depth_maps` trains one field per
+state on all of that state's views from that same start, renders the expected depth (accumulated depth over
+alpha) of its Gaussians of opacity above ``min_opacity`` at every view where their alpha exceeds
+``min_alpha``, and writes the maps into the capture (``<state>/depth/<stem>.png``, uint16 in ``DEPTH_SCALE``
+units, 0 = none; each frame of ``transforms.json`` gains its ``depth_path``).
 Training on the capture then starts from points back-projected from them, on every surface the photos show,
 bare walls included, as it does from a capture with measured depth. Unlike multi-view stereo
 (:mod:`.mvs`) the maps need no texture; they are only as right as the first fit, and serve only as the start

@@ -11,6 +11,7 @@ centre of a ``W x H`` image is at ``(W/2, H/2)``.
 * :func:`orbit_eyes`: camera positions on rings around a point (look at it with :func:`look_at`, or with
   the torch one in batches).
 * :func:`intrinsics_from_fov`: ``K`` of a vertical field of view.
+* :func:`unproject`: pixels with depth back to world points.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Cameras", "intrinsics_from_fov", "look_at", "orbit_eyes"]
+__all__ = ["Cameras", "intrinsics_from_fov", "look_at", "orbit_eyes", "unproject"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,3 +111,17 @@ def intrinsics_from_fov(fovy_deg: float, width: int, height: int) -> np.ndarray:
     ``(W/2, H/2)`` (the image centre in the pixel convention above)."""
     f = 0.5 * height / np.tan(0.5 * np.deg2rad(fovy_deg))
     return np.array([[f, 0.0, 0.5 * width], [0.0, f, 0.5 * height], [0.0, 0.0, 1.0]])
+
+
+def unproject(u, v, depth, viewmats, Ks) -> np.ndarray:
+    """World points ``[N, 3]`` float64 of pixel positions ``u, v [N]`` (pixel units in the convention above: a
+    pixel's centre is at ``+0.5``) at ``depth [N]`` along each camera's optical axis (z, not the ray length),
+    seen by world-to-camera ``viewmats`` and ``Ks``: one camera (``[4, 4]``, ``[3, 3]``) for every point or one
+    per point (``[N, 4, 4]``, ``[N, 3, 3]``). The inverse of projecting ``R x + t`` with ``K``."""
+    u, v, z = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (u, v, depth))
+    vm = np.asarray(viewmats, dtype=np.float64)
+    K = np.asarray(Ks, dtype=np.float64)
+    fx, fy, cx, cy = K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]
+    cam = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1)
+    R, t = vm[..., :3, :3], vm[..., :3, 3]
+    return np.einsum("...ji,...j->...i", R, cam - t)  # R^T (p - t)

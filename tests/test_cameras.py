@@ -1,4 +1,4 @@
-"""dsg_gym.cameras: the camera set type, look-at views and orbits (OpenCV convention)."""
+"""dsg_gym.cameras: the camera set type, look-at views, orbits and unprojection (OpenCV convention)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dsg_gym.cameras import Cameras, intrinsics_from_fov, look_at, orbit_eyes
+from dsg_gym.cameras import Cameras, intrinsics_from_fov, look_at, orbit_eyes, unproject
 
 
 def _to_camera(vm: np.ndarray, p) -> np.ndarray:
@@ -72,3 +72,23 @@ def test_cameras_type():
     ):
         with pytest.raises(ValueError, match="Cameras"):
             Cameras(**{"width": 8, "height": 8, **bad})
+
+
+def test_unproject_inverts_the_projection():
+    rng = np.random.default_rng(3)
+    K = intrinsics_from_fov(55.0, 96, 64)
+    vms = np.stack(
+        [look_at(e, [0.1, -0.2, 0.0]) for e in ([1.0, 0.5, 0.8], [-0.7, 1.1, 0.4], [0.2, -1.3, 1.5])]
+    )
+    pts = rng.uniform(-0.3, 0.3, (3, 50, 3))
+    cams = np.einsum("vij,vnj->vni", vms[:, :3, :3], pts) + vms[:, None, :3, 3]
+    pix = np.einsum("ij,vnj->vni", K, cams)
+    u, v, z = pix[..., 0] / pix[..., 2], pix[..., 1] / pix[..., 2], cams[..., 2]
+    for i in range(3):  # one camera for all points
+        np.testing.assert_allclose(unproject(u[i], v[i], z[i], vms[i], K), pts[i], atol=1e-12)
+    per_point = unproject(u.ravel(), v.ravel(), z.ravel(), np.repeat(vms, 50, 0), np.repeat(K[None], 150, 0))
+    np.testing.assert_allclose(per_point, pts.reshape(-1, 3), atol=1e-12)
+    # the principal point at depth d lies on the optical axis, d in front of the camera centre
+    centre = -vms[0, :3, :3].T @ vms[0, :3, 3]
+    p = unproject([K[0, 2]], [K[1, 2]], [2.0], vms[0], K)[0]
+    np.testing.assert_allclose(p, centre + 2.0 * vms[0, 2, :3], atol=1e-12)

@@ -19,6 +19,7 @@ from train_world.single_state.init import (
     _pixels,
     camera_centres,
     object_hull_points,
+    points_from_depth,
     room_points,
     table_points,
     tabletop_points,
@@ -28,14 +29,45 @@ from train_world.single_state.trainer import Trainer
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def with_depth(tmp_path_factory):
     cap = tiny_capture(tmp_path_factory.mktemp("tabletop"), "four_mixed", size=64, views=16)
     cfg = TrainConfig(preset=get_preset("quick"), state="state1", holdout_every=0)
     d = load_training_data(cap, cfg)
     assert d.depths is not None and d.classes is not None and d.table_bounds is not None
     scene = json.loads((cap / "scene.json").read_text())
     centres = np.array([p["pose"] for p in scene["states"]["state1"]["object_poses"]])[:, :3, 3]
+    return d, cfg, centres
+
+
+@pytest.fixture(scope="module")
+def data(with_depth):
+    d, cfg, centres = with_depth
     return dataclasses.replace(d, depths=None), cfg, centres  # as a capture from photos: no depth
+
+
+def test_points_from_depth_land_on_their_pixels(with_depth):
+    d = with_depth[0]
+    one = slice(0, 1)
+    P, cols, ids = points_from_depth(
+        d.images[one],
+        d.depths[one],
+        d.viewmats[one],
+        d.Ks[one],
+        d.classes[one],
+        10**6,
+        np.random.default_rng(0),
+    )
+    depth, image, classes = d.depths[0].numpy(), d.images[0].numpy(), d.classes[0].numpy()
+    assert len(P) == int((depth > 0).sum())  # every pixel with depth, none without
+    u, v, ok = _pixels(P, d.viewmats[0], d.Ks[0], d.width, d.height)
+    assert ok.all()
+    z = P @ d.viewmats[0, :3, :3].double().numpy().T + d.viewmats[0, :3, 3].double().numpy()
+    np.testing.assert_allclose(z[:, 2], depth[v, u], rtol=1e-6)
+    np.testing.assert_array_equal(cols, image[v, u].astype(np.float64))
+    np.testing.assert_array_equal(ids, classes[v, u])
+    assert len(np.unique(v * d.width + u)) == len(P)  # one point per pixel
+    sub = points_from_depth(d.images, d.depths, d.viewmats, d.Ks, None, 500, np.random.default_rng(1))
+    assert len(sub[0]) == 500 and not sub[2].any()  # the budget holds; no masks: id 0
 
 
 def _box(d):

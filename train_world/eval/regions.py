@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from dsg_gym.cameras import unproject
 from train_world.eval.metrics import psnr_from_mse
 
 __all__ = [
@@ -62,12 +63,7 @@ def seen_by(
     d = np.asarray(depth, np.float64)
     H, W = d.shape
     y, x = np.mgrid[0:H, 0:W].astype(np.float64)
-    K = np.asarray(K, np.float64)
-    cam = np.stack([(x + 0.5 - K[0, 2]) / K[0, 0] * d, (y + 0.5 - K[1, 2]) / K[1, 1] * d, d], -1).reshape(
-        -1, 3
-    )
-    vm = np.asarray(viewmat, np.float64)
-    world = (cam - vm[:3, 3]) @ vm[:3, :3]  # R^T (x - t)
+    world = unproject(x + 0.5, y + 0.5, d, viewmat, K)
     valid = d.reshape(-1) > 0
     seen = np.zeros(H * W, bool)
     for D, V, Kt in zip(

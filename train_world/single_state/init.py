@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from dsg_gym.cameras import unproject
 from train_world.single_state.field import SegmentedField
 from train_world.single_state.losses import knn_indices
 
@@ -92,14 +93,8 @@ def points_from_depth(
             continue
         if valid.size > per_view:
             valid = np.sort(rng.choice(valid, per_view, replace=False))
-        K = Ks[i].double().numpy()
-        zz = z.reshape(-1)[valid]
-        x = (u.reshape(-1)[valid] - K[0, 2]) / K[0, 0] * zz
-        y = (v.reshape(-1)[valid] - K[1, 2]) / K[1, 1] * zz
-        cam = np.stack([x, y, zz], 1)
-        vm = viewmats[i].double().numpy()
-        world = (cam - vm[:3, 3]) @ vm[:3, :3]  # R^T (p - t)
-        pts.append(world)
+        K, vm = Ks[i].double().numpy(), viewmats[i].double().numpy()
+        pts.append(unproject(u.reshape(-1)[valid], v.reshape(-1)[valid], z.reshape(-1)[valid], vm, K))
         cols.append(images[i].reshape(-1, 3).numpy()[valid])
         ids.append(masks[i].reshape(-1).numpy()[valid] if masks is not None else np.zeros(valid.size))
     if not pts:
@@ -210,8 +205,7 @@ def room_points(
     near, far = ROOM_DEPTHS[0] * dist, ROOM_DEPTHS[1] * dist
     q = rng.random(n)
     z = 1.0 / ((1.0 - q) / near + q / far)
-    cam = np.stack([(u - K[:, 0, 2]) / K[:, 0, 0] * z, (v - K[:, 1, 2]) / K[:, 1, 1] * z, z], 1)
-    world = np.einsum("nji,nj->ni", vm[:, :3, :3], cam - vm[:, :3, 3])  # R^T (p - t)
+    world = unproject(u, v, z, vm, K)
     cols = images.numpy()[view, row, col].astype(np.float64)
     return world[keep], cols[keep], np.zeros(int(keep.sum()), np.int64)
 

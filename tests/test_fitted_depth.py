@@ -3,6 +3,7 @@ true depth is known: the capture's depth maps are taken away, fitted again and c
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -116,6 +117,27 @@ def test_the_maps_are_the_fit_to_the_millimetre_and_the_fit_is_deterministic(tru
     assert np.array_equal(units * np.float32(DEPTH_SCALE), written)
 
 
+def _median_error(est, true):
+    ok = (est > 0) & (true > 0)
+    return float(np.median(np.abs(est[ok] - true[ok]) / true[ok]))
+
+
+def test_a_fit_at_half_size_gives_depth_at_the_photos_size(truth, fitted, tmp_path):
+    cap, _ = fitted
+    true = load_capture(truth, ["state1"]).states["state1"].depths.numpy()
+    full = load_capture(cap, ["state1"]).states["state1"].depths.numpy()
+    again = _strip_depth(shutil.copytree(truth, tmp_path / "again"))
+    half = fitted_depths(again, "state1", dataclasses.replace(FIT, downscale=2)).numpy()
+    assert half.shape == true.shape == (16, 32, 32)  # trained at 16x16, rendered at 32x32
+    assert (half > 0).mean() > 0.8
+    err_full, err_half = _median_error(full, true), _median_error(half, true)
+    # 300 steps at 32x32 (16x16) are far from converged: the full-size fit is 16 % off, the half-size one 34 %
+    assert err_half < 3 * err_full < 0.6, (err_full, err_half)
+    assert not np.array_equal(half, full)  # a fit of its own
+    with pytest.raises(ValueError, match="downscale must be an integer >= 1"):
+        DepthFit(downscale=0)
+
+
 def test_a_capture_with_depth_is_refused_and_left_unchanged(truth):
     before = (truth / "state1" / "transforms.json").read_bytes()
     with pytest.raises(ValueError, match="has depth maps already"):
@@ -146,9 +168,21 @@ def test_dsg_capture_fits_depth_by_default(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(photo_capture, "build_capture", fake_build)
     base = [str(tmp_path), "--out", str(tmp_path / "out"), "--quiet"]
-    for extra in ([], ["--fit-steps", "1500"], ["--depth", "stereo"], ["--depth", "none"]):
+    for extra in (
+        [],
+        ["--fit-steps", "1500"],
+        ["--fit-downscale", "2"],
+        ["--depth", "stereo"],
+        ["--depth", "none"],
+    ):
         assert capture_cli.main([*base, *extra]) == 2 and "stop here" in capsys.readouterr().err
-    assert given == [(False, DepthFit()), (False, DepthFit(steps=1500)), (True, None), (False, None)]
+    assert given == [
+        (False, DepthFit()),
+        (False, DepthFit(steps=1500)),
+        (False, DepthFit(downscale=2)),
+        (True, None),
+        (False, None),
+    ]
 
 
 def test_bad_depth_options_are_refused(tmp_path, capsys):
@@ -157,6 +191,8 @@ def test_bad_depth_options_are_refused(tmp_path, capsys):
     for extra, what in (
         (["--depth", "stereo", "--fit-steps", "3000"], "--fit-steps is for --depth fit, not --depth stereo"),
         (["--fit-steps", "5"], "at least 100 steps"),
+        (["--depth", "none", "--fit-downscale", "2"], "--fit-downscale is for --depth fit, not --depth none"),
+        (["--fit-downscale", "0"], "--fit-downscale must be an integer >= 1"),
         (["--depth", "lidar"], "invalid choice: 'lidar'"),
     ):
         with pytest.raises(SystemExit) as e:

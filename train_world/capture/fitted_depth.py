@@ -38,15 +38,17 @@ __all__ = ["DepthFit", "fit_depth_maps", "fitted_depths", "rendered_depths"]
 class DepthFit:
     """The first reconstruction behind :func:`fit_depth_maps`: ``steps`` training steps at most
     ``max_gaussians`` Gaussians (densification until two thirds of the steps; the ``default`` preset's
-    other settings); its depth rendered from the Gaussians of opacity above ``min_opacity`` and kept where
-    the render's alpha exceeds ``min_alpha``. The nearly transparent Gaussians that a fit leaves floating
-    (what is left of the random start) would pull every expected depth towards the camera."""
+    other settings) on the photos downscaled by the integer ``downscale``; its depth rendered at the photos'
+    own size from the Gaussians of opacity above ``min_opacity`` and kept where the render's alpha exceeds
+    ``min_alpha``. The nearly transparent Gaussians that a fit leaves floating (what is left of the random
+    start) would pull every expected depth towards the camera."""
 
     steps: int = 3000
     max_gaussians: int = 60_000
     min_alpha: float = 0.5
     min_opacity: float = 0.2
     seed: int = 0
+    downscale: int = 1
 
     def __post_init__(self) -> None:
         if self.steps < 100:
@@ -57,6 +59,8 @@ class DepthFit:
             raise ValueError(f"min_alpha must lie in (0, 1), got {self.min_alpha}")
         if not 0.0 <= self.min_opacity < 1.0:
             raise ValueError(f"min_opacity must lie in [0, 1), got {self.min_opacity}")
+        if not (isinstance(self.downscale, int) and self.downscale >= 1):
+            raise ValueError(f"a depth fit's downscale must be an integer >= 1, got {self.downscale!r}")
 
 
 def rendered_depths(field, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
@@ -78,20 +82,24 @@ def rendered_depths(field, viewmats: torch.Tensor, Ks: torch.Tensor, width: int,
 
 
 def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: bool = False) -> torch.Tensor:
-    """Depth ``[V,H,W]`` at every view of ``state`` (the order of its ``transforms.json``) from a field trained
-    on all of them (:class:`DepthFit`)."""
+    """Depth ``[V,H,W]`` at every view of ``state`` (the order of its ``transforms.json``, the photos' size)
+    from a field trained on all of them (:class:`DepthFit`)."""
+    from train_world.capture.loader import load_capture
     from train_world.single_state.data import load_training_data
     from train_world.single_state.presets import TrainConfig, get_preset
     from train_world.single_state.trainer import Trainer
 
     preset = get_preset("default", iterations=fit.steps, densify_until=max(1, round(2 * fit.steps / 3)),
                         max_gaussians=fit.max_gaussians, checkpoint_every=fit.steps)  # fmt: skip
-    config = TrainConfig(preset=preset, seed=fit.seed, state=state, holdout_every=0)
+    config = TrainConfig(preset=preset, seed=fit.seed, state=state, holdout_every=0, downscale=fit.downscale)
     data = load_training_data(capture, config)
     trainer = Trainer(data, config)
     trainer.train(progress=progress, label=f"depth fit {state}")
-    return rendered_depths(trainer.field, data.viewmats, data.Ks, data.width, data.height, trainer.background,
-                           fit.min_alpha, fit.min_opacity)  # fmt: skip
+    views = data  # the training views, or the photos' own size for a fit at a smaller one
+    if fit.downscale > 1:
+        views = load_capture(capture, states=[state], load_masks=False, load_depth=False).states[state]
+    return rendered_depths(trainer.field, views.viewmats, views.Ks, views.width, views.height,
+                           trainer.background, fit.min_alpha, fit.min_opacity)  # fmt: skip
 
 
 def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool = False) -> dict[str, float]:

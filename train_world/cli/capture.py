@@ -88,9 +88,23 @@ def _parser() -> argparse.ArgumentParser:
         metavar="STEPS",
         help=f"training steps of each state's first reconstruction with --depth fit (default {DepthFit.steps})",
     )
+    p.add_argument(
+        "--fit-downscale",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --depth fit: train each first reconstruction on the photos downscaled by the integer N "
+        f"(its depth is still rendered at the photos' size; default {DepthFit.downscale})",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
+
+
+def _depth_fit(args: argparse.Namespace) -> DepthFit:
+    """The :class:`DepthFit` of ``--fit-steps`` and ``--fit-downscale`` (its defaults where not given)."""
+    given = {"steps": args.fit_steps, "downscale": args.fit_downscale}
+    return DepthFit(**{k: v for k, v in given.items() if v is not None})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,8 +116,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--out is required (or --extract-frames N to sample videos to frames)")
     if args.marker_size is not None and args.metres_per_unit is not None:
         parser.error("give the scale once: --marker-size or --metres-per-unit")
-    if args.fit_steps is not None and args.depth != "fit":
-        parser.error(f"--fit-steps is for --depth fit, not --depth {args.depth}")
+    for flag, value in (("--fit-steps", args.fit_steps), ("--fit-downscale", args.fit_downscale)):
+        if value is not None and args.depth != "fit":
+            parser.error(f"{flag} is for --depth fit, not --depth {args.depth}")
+    if args.fit_downscale is not None and args.fit_downscale < 1:
+        parser.error(f"--fit-downscale must be an integer >= 1, got {args.fit_downscale}")
     if args.fit_steps is not None and args.fit_steps < 100:
         parser.error(f"--fit-steps needs at least 100 steps, got {args.fit_steps}")
     if args.marker_size is not None and not args.marker_size > 0:
@@ -128,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
             marker_id=args.marker_id,
             overwrite=args.overwrite,
             stereo=args.depth == "stereo",
-            depth_fit=DepthFit(steps=args.fit_steps or DepthFit.steps) if args.depth == "fit" else None,
+            depth_fit=_depth_fit(args) if args.depth == "fit" else None,
             progress=not args.quiet,
             log=None if args.quiet else say,
         )

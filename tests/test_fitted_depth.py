@@ -15,7 +15,7 @@ from train_world.capture import load_capture
 from train_world.capture.fitted_depth import DepthFit, fit_depth_maps, fitted_depths, rendered_depths
 from train_world.capture.format import DEPTH_SCALE
 
-FIT = DepthFit(steps=300, max_gaussians=5000)
+FIT = DepthFit(steps=300, max_gaussians=5000, downscale=1)  # at the photos' size (the default halves it)
 
 
 def _strip_depth(capture):
@@ -79,7 +79,7 @@ def test_faint_gaussians_do_not_pull_the_depth_nearer():
     opaque = rendered_depths(field, torch.eye(4)[None], K, 32, 32, torch.zeros(3), 0.5, 0.1)[0, 16, 16].item()
     assert opaque == pytest.approx(2.0, rel=1e-4)
     assert every < 1.99  # the faint one in front pulls the expected depth towards the camera
-    assert DepthFit().min_opacity == 0.2
+    assert DepthFit().min_opacity == 0.2 and DepthFit().downscale == 2
 
 
 def test_fitted_depth_is_written_into_the_capture(fitted):
@@ -171,7 +171,7 @@ def test_dsg_capture_fits_depth_by_default(tmp_path, capsys, monkeypatch):
     for extra in (
         [],
         ["--fit-steps", "1500"],
-        ["--fit-downscale", "2"],
+        ["--fit-downscale", "1"],
         ["--depth", "stereo"],
         ["--depth", "none"],
     ):
@@ -179,7 +179,7 @@ def test_dsg_capture_fits_depth_by_default(tmp_path, capsys, monkeypatch):
     assert given == [
         (False, DepthFit()),
         (False, DepthFit(steps=1500)),
-        (False, DepthFit(downscale=2)),
+        (False, DepthFit(downscale=1)),
         (True, None),
         (False, None),
     ]

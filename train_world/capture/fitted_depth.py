@@ -38,17 +38,17 @@ __all__ = ["DepthFit", "fit_depth_maps", "fitted_depths", "rendered_depths"]
 class DepthFit:
     """The first reconstruction behind :func:`fit_depth_maps`: ``steps`` training steps at most
     ``max_gaussians`` Gaussians (densification until two thirds of the steps; the ``default`` preset's
-    other settings) on the photos downscaled by the integer ``downscale``; its depth rendered at the photos'
-    own size from the Gaussians of opacity above ``min_opacity`` and kept where the render's alpha exceeds
-    ``min_alpha``. The nearly transparent Gaussians that a fit leaves floating (what is left of the random
-    start) would pull every expected depth towards the camera."""
+    other settings) on the photos downscaled by the integer ``downscale`` (half their size by default); its
+    depth rendered at the photos' own size from the Gaussians of opacity above ``min_opacity`` and kept where
+    the render's alpha exceeds ``min_alpha``. The nearly transparent Gaussians that a fit leaves floating
+    (what is left of the random start) would pull every expected depth towards the camera."""
 
     steps: int = 3000
     max_gaussians: int = 60_000
     min_alpha: float = 0.5
     min_opacity: float = 0.2
     seed: int = 0
-    downscale: int = 1
+    downscale: int = 2
 
     def __post_init__(self) -> None:
         if self.steps < 100:

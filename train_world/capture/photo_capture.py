@@ -206,9 +206,9 @@ def build_capture(
     Metric scale: ``metres_per_unit``, or ``marker_size`` (the black square's edge in metres of an ArUco
     ``DICT_4X4_50`` marker lying in the scene, id ``marker_id`` or the lowest id seen; :mod:`.marker`).
     ``stereo``: depth maps of every view from multi-view stereo (:mod:`.mvs`); training on the capture then
-    starts from them instead of the table top, hulls and random points. ``depth_fit``: depth maps of every view
-    from a first reconstruction of each state (:mod:`.fitted_depth`), likewise the training's start (the
-    default of ``dsg-capture``, ``--depth fit``; none here unless given). ``reconstruct``: the
+    starts from them instead of the table top, hulls, room points and random points. ``depth_fit``: depth
+    maps of every view from a first reconstruction of each state (:mod:`.fitted_depth`), likewise the
+    training's start (the default of ``dsg-capture``, ``--depth fit``; none here unless given). ``reconstruct``: the
     structure-from-motion step, called as :func:`.sfm.run_sfm` is (a benchmark passes one that puts known
     cameras in place, :func:`.compare.with_true_cameras`)."""
     if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):

@@ -79,7 +79,8 @@ def _parser() -> argparse.ArgumentParser:
         help="the depth maps every view gets, which training starts from: 'fit' (default) renders them from "
         "a first reconstruction of each state (--fit-steps training steps per state; minutes on a CPU), "
         "'stereo' from multi-view stereo (0 where none, e.g. bare walls), 'none' writes none (training "
-        "then starts from the sparse points, the table top, the objects' hulls and random points)",
+        "then starts from the sparse points, the table top, the objects' hulls, points out to the room and "
+        "random points)",
     )
     p.add_argument(
         "--fit-steps",

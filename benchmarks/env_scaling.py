@@ -16,6 +16,11 @@ the reset before them is not timed.
   beside a busy second process (a Python loop), for each thread choice of the renderer: ``auto`` (the default:
   :class:`dsg_gym.splat.threads.ThreadChooser`), ``threads`` (always the threaded kernels) and ``serial``; the
   idle and shared runs alternate repeat by repeat.
+* ``breakdown``: where an env step's time goes, 128 px, one camera: microseconds per env step of the whole
+  step, the transition (action check, physics proxy, task; ``DSGWorldEnv._transition``) and the observation (the
+  render), for one env playing the 16-env vector env's episodes and for the 16-env vector env. The vector env over
+  one env if its transitions cost nothing (``vector16_over_one_env_without_transitions``) bounds what batching
+  the transitions can give.
 * ``sizes``: 64, 128 and 256 px with 1, 2 and 4 capture cameras: one env, one env playing the vector env's
   episodes, one env with the exact merge (``render_settings={"tail_stride": 0}``, no background tail tables), the
   16-env vector env, and MuJoCo's own EGL render (RGB + segmentation of the matching synthetic scene, every
@@ -224,6 +229,57 @@ def shared_section(steps: int, repeats: int) -> dict:
     return out
 
 
+class _Timed:
+    """A method of one object replaced by itself plus a clock (an instance attribute; the class is untouched).
+    The clock stops while ``clock["on"]`` is False."""
+
+    def __init__(self, obj, name: str, clock: dict):
+        self.f, self.clock, self.seconds = getattr(obj, name), clock, 0.0
+        setattr(obj, name, self)
+
+    def __call__(self, *args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return self.f(*args, **kwargs)
+        finally:
+            if self.clock["on"]:
+                self.seconds += time.perf_counter() - t0
+
+
+def breakdown_section(steps: int, repeats: int) -> dict:
+    out = {}
+    for name, r in (("one_env_same_episodes", Stepper(1, 128, episodes=16)), ("vector16", Stepper(16, 128))):
+        clock = {"on": True}
+        timed = [_Timed(r.env.unwrapped, "_observe", clock)]
+        timed += [_Timed(m, "_transition", clock) for m in r.members]
+        reset = r.env.reset
+
+        def untimed_reset(*args, _reset=reset, _clock=clock, **kwargs):  # Stepper.run's resets are not timed
+            _clock["on"] = False
+            try:
+                return _reset(*args, **kwargs)
+            finally:
+                _clock["on"] = True
+
+        r.env.reset = untimed_reset
+        runs, n = [], max(2, steps // 16) * 16
+        for _ in range(repeats):
+            for t in timed:
+                t.seconds = 0.0
+            rate = r.run(n // 16)
+            runs.append({"step_us": 1e6 / rate, "observe_us": 1e6 * timed[0].seconds / n,
+                         "transition_us": 1e6 * sum(t.seconds for t in timed[1:]) / n})  # fmt: skip
+        out[name] = {k: round(float(np.median([x[k] for x in runs])), 1) for k in runs[0]}
+        out[name]["runs"] = [{k: round(v, 1) for k, v in x.items()} for x in runs]
+        r.env.close()
+    one, vec = out["one_env_same_episodes"], out["vector16"]
+    out["vector16_over_one_env"] = round(one["step_us"] / vec["step_us"], 3)
+    out["vector16_over_one_env_without_transitions"] = round(
+        one["step_us"] / (vec["step_us"] - vec["transition_us"]), 3
+    )
+    return out
+
+
 def sizes_section(steps: int, repeats: int, sizes, cameras) -> dict:
     rows = []
     for size in sizes:
@@ -266,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
         "--steps", type=int, default=400, help="one-env steps per repeat (vector envs: as many env steps)"
     )
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--sections", default="vector,shared,sizes", help="comma-separated subset")
+    ap.add_argument("--sections", default="vector,shared,breakdown,sizes", help="comma-separated subset")
     ap.add_argument("--quick", action="store_true", help="a fast smoke run (few steps, 64 px, 1-2 cameras)")
     args = ap.parse_args(argv)
     args.out = args.out or str(default_out("env_scaling"))
@@ -280,6 +336,9 @@ def main(argv: list[str] | None = None) -> int:
     if "shared" in sections:
         result["shared"] = shared_section(steps, repeats)
         print(json.dumps(result["shared"]), flush=True)
+    if "breakdown" in sections:
+        result["breakdown"] = breakdown_section(steps, repeats)
+        print(json.dumps(result["breakdown"]), flush=True)
     if "sizes" in sections:
         sizes, cams = ((64,), (1, 2)) if args.quick else ((64, 128, 256), (1, 2, 4))
         result["sizes"] = sizes_section(steps, repeats, sizes, cams)

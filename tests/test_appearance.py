@@ -282,5 +282,7 @@ def test_colour_score_tells_a_shapes_equal_turns_apart(scene):
     plain = [[_render(c, P, textured=False) for c in cams] for P in (np.eye(4), T_true)]
     plain_score = colour_score(hulls[0], hulls[1], plain[0], plain[1], 1)
     assert plain_score(T_true) < plain_score(_perturbed(T_true, hulls[0][0], (0.0, 0.0, 15.0)))
-    assert plain_score(T_true) == pytest.approx(plain_score(half), rel=1e-6)
+    # alike up to the hull's voxels, which a half turn does not map onto themselves (the 15-degree turn above
+    # scores about twice as high)
+    assert plain_score(T_true) == pytest.approx(plain_score(half), rel=1e-3)
     assert colour_score(hulls[0], hulls[1], views[0], [], 1)(T_true) == float("inf")  # nothing to score by

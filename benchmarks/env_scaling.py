@@ -127,13 +127,18 @@ def _med(r: Stepper) -> dict:
     return {"env_steps_per_s": round(r.median(), 1), "runs": [round(x, 1) for x in r.rates]}
 
 
-def vector_section(steps: int, repeats: int) -> dict:
+def vector_section(steps: int, repeats: int, breakdown: dict | None = None) -> dict:
+    """Steps/s of one env, the 16 episodes one after the other, the 4- and 16-env vector envs and two async
+    workers, and the memory per extra env. With ``breakdown`` (a dict), the breakdown section runs on the same
+    two steppers it needs before they close, and fills it."""
     runs = {"one_env": Stepper(1, 128), "one_env_same_episodes": Stepper(1, 128, episodes=16),
             "vector4": Stepper(4, 128), "vector16": Stepper(16, 128)}  # fmt: skip
     for _ in range(repeats):
         for name, r in runs.items():
             r.run(steps if name == "one_env" else max(4, steps // max(r.n, r.episodes)))
     out = {name: _med(r) for name, r in runs.items()}
+    if breakdown is not None:
+        breakdown.update(breakdown_section(steps, repeats, runs["one_env_same_episodes"], runs["vector16"]))
     out["async2"] = async_rate(128, steps // 2, repeats)
     for r in runs.values():
         r.env.close()
@@ -234,8 +239,13 @@ class _Timed:
     The clock stops while ``clock["on"]`` is False."""
 
     def __init__(self, obj, name: str, clock: dict):
+        self.obj, self.name = obj, name
         self.f, self.clock, self.seconds = getattr(obj, name), clock, 0.0
         setattr(obj, name, self)
+
+    def remove(self) -> None:
+        """The object's own method again."""
+        delattr(self.obj, self.name)
 
     def __call__(self, *args, **kwargs):
         t0 = time.perf_counter()
@@ -246,9 +256,17 @@ class _Timed:
                 self.seconds += time.perf_counter() - t0
 
 
-def breakdown_section(steps: int, repeats: int) -> dict:
+def breakdown_section(
+    steps: int, repeats: int, one: Stepper | None = None, vec: Stepper | None = None
+) -> dict:
+    """Microseconds per env step of the step, the render and the transitions, for ``one`` (one env playing the
+    16 episodes) and ``vec`` (the 16-env vector env); each is made here when not given, and closed only then.
+    The timing wrappers are instance attributes, removed again afterwards."""
     out = {}
-    for name, r in (("one_env_same_episodes", Stepper(1, 128, episodes=16)), ("vector16", Stepper(16, 128))):
+    given = one is not None, vec is not None
+    one = one if one is not None else Stepper(1, 128, episodes=16)
+    vec = vec if vec is not None else Stepper(16, 128)
+    for (name, r), keep in zip((("one_env_same_episodes", one), ("vector16", vec)), given):
         clock = {"on": True}
         timed = [_Timed(r.env.unwrapped, "_observe", clock)]
         timed += [_Timed(m, "_transition", clock) for m in r.members]
@@ -271,11 +289,15 @@ def breakdown_section(steps: int, repeats: int) -> dict:
                          "transition_us": 1e6 * sum(t.seconds for t in timed[1:]) / n})  # fmt: skip
         out[name] = {k: round(float(np.median([x[k] for x in runs])), 1) for k in runs[0]}
         out[name]["runs"] = [{k: round(v, 1) for k, v in x.items()} for x in runs]
-        r.env.close()
-    one, vec = out["one_env_same_episodes"], out["vector16"]
-    out["vector16_over_one_env"] = round(one["step_us"] / vec["step_us"], 3)
+        for t in timed:
+            t.remove()
+        del r.env.reset
+        if not keep:
+            r.env.close()
+    o, v = out["one_env_same_episodes"], out["vector16"]
+    out["vector16_over_one_env"] = round(o["step_us"] / v["step_us"], 3)
     out["vector16_over_one_env_without_transitions"] = round(
-        one["step_us"] / (vec["step_us"] - vec["transition_us"]), 3
+        o["step_us"] / (v["step_us"] - v["transition_us"]), 3
     )
     return out
 
@@ -330,15 +352,19 @@ def main(argv: list[str] | None = None) -> int:
     sections = set(args.sections.split(","))
     result: dict = {"benchmark": "env_scaling", "obs": ["rgb", "mask"], "world": "bundled", "steps": steps,
                     "repeats": repeats, "targets": TARGETS}  # fmt: skip
-    if "vector" in sections:
-        result["vector"] = vector_section(steps, repeats)
+    if "vector" in sections:  # the breakdown, when asked for too, times the vector section's own steppers
+        both = {} if "breakdown" in sections else None
+        result["vector"] = vector_section(steps, repeats, breakdown=both)
         print(json.dumps(result["vector"]), flush=True)
+        if both is not None:
+            result["breakdown"] = both
+            print(json.dumps(both), flush=True)
+    elif "breakdown" in sections:
+        result["breakdown"] = breakdown_section(steps, repeats)
+        print(json.dumps(result["breakdown"]), flush=True)
     if "shared" in sections:
         result["shared"] = shared_section(steps, repeats)
         print(json.dumps(result["shared"]), flush=True)
-    if "breakdown" in sections:
-        result["breakdown"] = breakdown_section(steps, repeats)
-        print(json.dumps(result["breakdown"]), flush=True)
     if "sizes" in sections:
         sizes, cams = ((64,), (1, 2)) if args.quick else ((64, 128, 256), (1, 2, 4))
         result["sizes"] = sizes_section(steps, repeats, sizes, cams)

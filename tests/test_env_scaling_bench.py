@@ -25,3 +25,17 @@ def test_breakdown_splits_the_step_and_leaves_the_env_classes_alone(tmp_path):
     bound = one["step_us"] / (vec["step_us"] - vec["transition_us"])
     assert r["vector16_over_one_env_without_transitions"] == round(bound, 3) > r["vector16_over_one_env"]
     assert (DSGWorldEnv._transition, DSGWorldEnv._observe, DSGWorldVectorEnv._observe) == classes
+
+
+def test_breakdown_on_given_steppers_leaves_them_open_and_unwrapped():
+    from benchmarks.env_scaling import Stepper, breakdown_section
+
+    one, vec = Stepper(1, 64, episodes=16), Stepper(16, 64)
+    r = breakdown_section(32, 1, one, vec)
+    assert r["vector16"]["transition_us"] > 0 and r["one_env_same_episodes"]["observe_us"] > 0
+    for s in (one, vec):  # the timing wrappers are gone and the env still steps
+        assert not {"_observe", "_transition"} & set(vars(s.env.unwrapped))
+        assert not any("_transition" in vars(m) for m in s.members)
+        assert "reset" not in vars(s.env)
+        assert s.run(4, keep=False) > 0
+        s.env.close()

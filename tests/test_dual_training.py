@@ -51,6 +51,26 @@ def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
         assert rep["mean"][k] == np.mean([rep["states"][s]["mean"][k] for s in ("test_0", "test_1")])
     assert (tmp_path / "eval_all" / "test_1" / "grid.png").is_file()
     assert "| **mean** | 8 |" in (tmp_path / "eval_all" / "report.md").read_text()
+    # a training state's views: it held none out, so naming it alone is refused; --training-views scores them all
+    assert ev_main([str(ours), str(tiny), "--out", str(tmp_path / "fit"), "--state", "state2"]) == 2
+    assert (
+        ev_main(
+            [str(ours), str(tiny), "--out", str(tmp_path / "fit"), "--state", "state2", "--training-views"]
+        )
+        == 0
+    )
+    fit = json.loads((tmp_path / "fit" / "report.json").read_text())
+    assert fit["state"] == "state2" and fit["training_views"] is True and fit["views"] == 16
+    assert fit["mean"]["psnr"] > r_ours["psnr"], (
+        fit["mean"],
+        r_ours,
+    )  # it fits what it saw better than new states
+    assert "training views included" in (tmp_path / "fit" / "report.md").read_text()
+    assert (
+        json.loads((tmp_path / "eval_all" / "test_0" / "report.json").read_text())["training_views"] is False
+    )
+    for bad in (["--state", "test_0"], ["--state", "test"], []):  # not a training state, or none named
+        assert ev_main([str(ours), str(tiny), "--out", str(tmp_path / "bad"), *bad, "--training-views"]) == 2
     # on a capture with test states both train on every view of their states (the test states evaluate them)
     assert w.metadata["heldout_views_by_state"] == {"state1": [], "state2": []}
     wa = load_world(base)
@@ -60,6 +80,13 @@ def test_dsg_train_two_states_beats_single_state_baseline(tiny, tmp_path):
     assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a1")]) == 0
     assert json.loads((tmp_path / "eval_a1" / "report.json").read_text())["states"]["test_0"]["mean"] == r_a
     assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a2"), "--state", "state1"]) == 2
+    assert (
+        ev_main(
+            [str(base), str(tiny), "--out", str(tmp_path / "fit_a"), "--state", "state1", "--training-views"]
+        )
+        == 0
+    )
+    assert json.loads((tmp_path / "fit_a" / "report.json").read_text())["views"] == 16
     assert ev_main([str(base), str(tiny), "--out", str(tmp_path / "eval_a2"), "--state", "state2"]) == 0
     rep = json.loads((tmp_path / "eval_a2" / "report.json").read_text())
     assert rep["state"] == "state2" and rep["views"] == 16

@@ -35,9 +35,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder for report.json/report.md/grid.png")
     p.add_argument(
         "--state",
-        help="evaluate all views of this state at its object poses; 'test': every test state of the capture "
-        "(default: 'test' for a two-state world, or one trained without held-out views, on a capture with test "
-        "states; else the held-out views of the training state)",
+        help="evaluate this state at its object poses: all its views, or at a training state of the world the "
+        "views it held out; 'test': every test state of the capture (default: 'test' for a two-state world, "
+        "or one trained without held-out views, on a capture with test states; else the held-out views of the "
+        "training state)",
+    )
+    p.add_argument(
+        "--training-views",
+        action="store_true",
+        help="with --state naming a training state of the world: score all of that state's views, the ones it "
+        "was trained on included (the fit, to set beside the test states); the report says training_views",
     )
     frame = p.add_mutually_exclusive_group()
     frame.add_argument(
@@ -94,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
                 f"{a['camera_rotation_rms_deg']:.3g} deg",
                 file=sys.stderr,
             )
+        if args.training_views and args.state in (None, "test"):
+            raise ValueError(
+                "--training-views scores a training state's views: name it with --state (e.g. state1)"
+            )
         state = args.state if args.state is not None else default_state(args.world, args.capture)
         if state == "test":
             r = evaluate_test_states(
@@ -106,7 +117,13 @@ def main(argv: list[str] | None = None) -> int:
             )
         else:
             r = evaluate(
-                args.world, args.capture, args.out, state=state, alignment=alignment, view_alignment=views
+                args.world,
+                args.capture,
+                args.out,
+                state=state,
+                alignment=alignment,
+                view_alignment=views,
+                training_views=args.training_views,
             )
     except (WorldFormatError, CaptureError, ValueError, KeyError) as e:
         print(f"dsg-eval: error: {e}", file=sys.stderr)

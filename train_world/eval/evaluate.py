@@ -7,7 +7,9 @@ on the rendered identity features; IoU accumulated over all evaluated views per 
 Views: for a NeRF-Blender world the test split (``transforms_test_subset.json`` if present); for a capture
 world the views of its training state held out during training (every n-th view), or with ``--state`` all
 views of that state, objects placed at that state's poses (taken from the capture's ``scene.json`` when the
-world does not hold them).
+world does not hold them). At a state the world was trained on (either state of a two-state world) that is
+the views it held out; ``--training-views`` scores all of them, the ones it was trained on included, so the
+fit can be set beside the test states (the report says ``"training_views": true``).
 
 ``--state test`` evaluates at every test state of the capture (its ``"test"`` split), each as with
 ``--state``; that is the default for a two-state (DSG-World) world on a capture that has test states, and for
@@ -32,6 +34,7 @@ Example::
 
     dsg-eval worlds/four_mixed.dsgworld data/four_mixed --out eval/four_mixed
     dsg-eval worlds/two_blocks.dsgworld data/two_blocks --out eval/two_blocks --state test
+    dsg-eval worlds/two_blocks.dsgworld data/two_blocks --out eval/fit --state state1 --training-views
     dsg-eval worlds/my_table.dsgworld photos/my_table/ground_truth --out eval/my_table
     dsg-eval --suite --out suite --scenes two_blocks,five_small
 """
@@ -179,8 +182,12 @@ def evaluate(
     max_grid_rows: int = 8,
     alignment: FrameAlignment | None = None,
     view_alignment: ViewAlignment | None = None,
+    training_views: bool = False,
 ) -> dict[str, Any]:
-    """Evaluate and write the report files; returns the report dictionary. ``alignment``: ``capture`` is a
+    """Evaluate and write the report files; returns the report dictionary. At one of the world's training
+    states the views it held out are scored; ``training_views``: every view of that state instead, the ones it
+    was trained on included (how well the world fits what it saw, against how it does at new states; the
+    report says ``"training_views": true``). ``alignment``: ``capture`` is a
     ground truth in another frame (:mod:`.frames`): all views of ``state`` are scored, its cameras and object
     poses moved into the world's frame, and the report records the similarity under ``"frame_alignment"``.
     ``view_alignment``: each camera is first aligned to the world against its image (:mod:`.view_align`); the
@@ -193,14 +200,25 @@ def evaluate(
     trained_state = meta.get("state", meta.get("reference_state"))
     bg = tuple(meta.get("background", (0.0, 0.0, 0.0)))
     eval_state = state or trained_state
+    trained = meta.get("training_states") or ([trained_state] if isinstance(trained_state, str) else [])
+    held = (
+        (meta.get("heldout_views_by_state") or {trained[0]: meta.get("heldout_views", ())}) if trained else {}
+    )
+    held = held if isinstance(held, Mapping) else {}  # per training state, the views it held out
+    at_training_state = eval_state in trained
+    if training_views and (alignment is not None or not at_training_state):
+        raise ValueError(
+            f"training views: {eval_state!r} is not a training state of this world ({', '.join(trained) or 'none'}) "
+            "in the capture's frame; name one of them with --state, or drop --training-views"
+        )
     views = load_eval_views(
         capture,
         state=eval_state,
-        heldout=tuple(meta.get("heldout_views", ())),
+        heldout=tuple(held.get(eval_state, ())),
         downscale=int(src.get("downscale", 1)),
         background=bg,
         object_ids=world.object_ids,
-        all_views=alignment is not None or (state is not None and state != trained_state),
+        all_views=training_views or alignment is not None or (state is not None and not at_training_state),
     )
     if (
         alignment is None
@@ -234,10 +252,7 @@ def evaluate(
     union = np.zeros(k + 1)
     regions = RegionErrors(world.object_names) if gt_cls is not None else None
     seen = None
-    trained = meta.get("training_states") or ([trained_state] if isinstance(trained_state, str) else [])
     if regions is not None and trained and src.get("kind") == "capture":
-        held = meta.get("heldout_views_by_state") or {trained[0]: meta.get("heldout_views", ())}
-        held = held if isinstance(held, Mapping) else {}
         downscale = int(src.get("downscale", 1))
         seen = capture_coverage(capture, eval_state, views.indices, trained, held, downscale)
     for i in range(len(gt_imgs)):
@@ -283,6 +298,7 @@ def evaluate(
         "world": str(world_path),
         "capture": str(capture),
         "state": eval_state,
+        "training_views": bool(training_views),
         "views": len(per_view),
         "image_size": [views.width, views.height],
         "num_gaussians": int(g.num),

@@ -66,7 +66,8 @@ def markdown(r: dict[str, Any]) -> str:
     lines = [
         f"# Evaluation of `{Path(r['world']).name}` on `{r['state']}`",
         "",
-        f"{r['views']} views at {r['image_size'][0]}x{r['image_size'][1]}, {r['num_gaussians']} Gaussians.",
+        f"{r['views']} views at {r['image_size'][0]}x{r['image_size'][1]}, {r['num_gaussians']} Gaussians"
+        + (", the world's own training views included." if r.get("training_views") else "."),
         "",
         "| view | PSNR (dB) | SSIM | mask IoU |",
         "| --- | --- | --- | --- |",

@@ -264,7 +264,10 @@ def load_eval_views(
     v = cap.states[state]
     idx = tuple(range(len(v))) if all_views else tuple(heldout)
     if not idx:
-        raise ValueError(f"{p}: no held-out views of state {state!r} to evaluate (trained with holdout 0?)")
+        raise ValueError(
+            f"{p}: no held-out views of state {state!r} to evaluate (trained with holdout 0?); evaluate a test "
+            "state, or score the views it was trained on with --training-views"
+        )
     t = torch.tensor(idx, dtype=torch.int64)
     classes = None
     if v.masks is not None and object_ids:

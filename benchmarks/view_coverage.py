@@ -12,8 +12,9 @@ and the angle between it and the nearest such direction of any training view of 
 was moved so that the camera sees it from a side no training view did. The distance to the camera is
 compared likewise (its ratio to the nearest training direction's distance).
 
-Writes ``{runs: [{run, seed, scene, method, rows: [{state, view, object, pixels, psnr, gap_deg, elevation_deg,
-distance_ratio}], bins, corr_gap_psnr, corr_distance_psnr}], summary: {bins, corr_gap_psnr}}`` to
+Writes ``{runs: [{run, seed, scene, method, rows: [{state, view, object, pixels, sq, psnr, gap_deg,
+elevation_deg, seen_elevation_deg: [min, max] over the training directions, distance_ratio}], bins, corr_gap_psnr,
+corr_distance_psnr}], summary: {bins, corr_gap_psnr, corr_distance_psnr}}`` to
 ``benchmarks/results/view_coverage/<date>-<commit>.json``. ``bins`` pool the squared error of the rows whose
 gap is below 3 degrees, from 3 to 8, and from 8 up (PSNR over the pooled pixels).
 """
@@ -100,6 +101,10 @@ def score_world(world_path: Path, capture: Path) -> list[dict[str, Any]]:
     for k in range(world.num_objects):
         parts = [object_directions(cap.states[s].viewmats.numpy(), cap.poses[s][k]) for s in trained]
         seen.append((np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])))
+    seen_elev = [
+        [float(np.degrees(np.arcsin(np.clip(f(u[:, 2]), -1.0, 1.0)))) for f in (np.min, np.max)]
+        for u, _ in seen
+    ]
     rows = []
     for s in tests:
         v = cap.states[s]
@@ -126,6 +131,7 @@ def score_world(world_path: Path, capture: Path) -> list[dict[str, Any]]:
                     "psnr": float(10 * np.log10(3 * n / sq)) if sq > 0 else None,
                     "gap_deg": float(gap[i]),
                     "elevation_deg": float(np.degrees(np.arcsin(np.clip(dirs[i, 2], -1.0, 1.0)))),
+                    "seen_elevation_deg": seen_elev[k],
                     "distance_ratio": float(dist[i] / seen[k][1][j[i]]),
                 })  # fmt: skip
     return rows

@@ -76,6 +76,8 @@ def test_run_over_a_suite_folder(tmp_path):
     for x in rows:
         assert x["state"] == "test_0" and 0.0 <= x["gap_deg"] <= 180.0 and x["pixels"] >= 10
         assert -90.0 <= x["elevation_deg"] <= 90.0 and x["distance_ratio"] > 0 and math.isfinite(x["psnr"])
+        lo, hi = x["seen_elevation_deg"]
+        assert -90.0 <= lo <= hi <= 90.0 and (x["gap_deg"] > 0 or lo <= x["elevation_deg"] <= hi)
     assert r["summary"]["bins"] == entry["bins"]
     # no world of the asked method: a one-line error, nothing written
     assert vc.main([str(run), "--methods", "B", "--out", str(tmp_path / "none.json")]) == 2

@@ -55,7 +55,8 @@ def lighting_ceiling(
     """PSNR (dB) of ideal rigid-appearance renders against the ground truth of ``scene``'s test states.
 
     ``band``: use 12 cameras of the training orbit instead of the scene's test orbit. Returns a dict with
-    ``object_psnr`` (object pixels only), ``image_psnr`` (whole images) and the settings.
+    ``object_psnr`` (object pixels only), ``per_object`` (``{name: PSNR over that object's pixels}``),
+    ``image_psnr`` (whole images) and the settings.
     """
     from train_world.synth import resolve_scene
     from train_world.synth.build import build_scene, set_object_poses
@@ -78,6 +79,8 @@ def lighting_ceiling(
     P_ref = _matrices(states[reference])
     err_obj = err_img = 0.0
     n_obj = n_img = 0
+    err_k = np.zeros(built.num_objects)
+    n_k = np.zeros(built.num_objects, dtype=np.int64)
     with SceneRenderer(built, size, size) as r:
         for t in range(cfg.test_states):
             P_t = _matrices(states[f"test_{t}"])
@@ -95,6 +98,9 @@ def lighting_ceiling(
                     ideal[sel] = img[sel]
                 sq = ((gt.astype(np.float64) - ideal.astype(np.float64)) / 255.0) ** 2
                 obj = ids > 0
+                for k in range(built.num_objects):
+                    err_k[k] += float(sq[ids == k + 1].sum())
+                    n_k[k] += int((ids == k + 1).sum()) * 3
                 err_obj += float(sq[obj].sum())
                 err_img += float(sq.sum())
                 n_obj += int(obj.sum()) * 3
@@ -108,7 +114,9 @@ def lighting_ceiling(
         "cameras": "training band" if band else "test orbit",
         "test_states": cfg.test_states,
         "views": len(cams),
+        "seed": seed,
         "object_psnr": _psnr(err_obj, n_obj),
+        "per_object": {o.name: _psnr(float(err_k[k]), int(n_k[k])) for k, o in enumerate(spec.objects)},
         "image_psnr": _psnr(err_img, n_img),
     }
 
@@ -130,13 +138,16 @@ def main(argv: list[str] | None = None) -> int:
         "--reference", default="state1", help="state whose shading the objects keep (default state1)"
     )
     p.add_argument("--size", type=int, default=128)
+    p.add_argument(
+        "--seed", type=int, default=0, help="dsg-synth seed: the states and test cameras (default 0)"
+    )
     args = p.parse_args(argv)
     args.out = args.out or default_out("lighting_ceiling")
     rows = []
     for scene in args.scenes:
         for lighting in args.lighting:
             for band in (False, True):
-                r = lighting_ceiling(scene, lighting, args.reference, args.size, band=band)
+                r = lighting_ceiling(scene, lighting, args.reference, args.size, seed=args.seed, band=band)
                 rows.append(r)
                 print(
                     f"{scene:18s} {lighting:5s} {r['cameras']:13s} objects {r['object_psnr']:6.2f} dB  "

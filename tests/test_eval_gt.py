@@ -20,7 +20,7 @@ from dsg_gym.gaussians import GaussianSet
 from dsg_gym.world import World, load_world
 from train_world.cli import train as train_cli
 from train_world.cli.eval import main as eval_main
-from train_world.eval.evaluate import evaluate_test_states
+from train_world.eval.evaluate import evaluate, evaluate_test_states
 from train_world.eval.frames import (
     FrameAlignment,
     fit_frame_alignment,
@@ -183,6 +183,10 @@ def test_one_frame_gives_exactly_the_evaluation_without_alignment(trained, tmp_p
     # a world without camera names is matched through the capture it was trained on
     unnamed = dataclasses.replace(w, metadata={k: v for k, v in w.metadata.items() if k != "camera_names"})
     assert fit_frame_alignment(unnamed, cap).identity
+    # the training views are scored in the world's own frame only
+    with pytest.raises(ValueError, match="another frame"):
+        evaluate(world, cap, tmp_path / "fit", state="state1", alignment=al, training_views=True)
+    assert not (tmp_path / "fit").exists()
 
 
 def test_when_the_frames_are_aligned_and_when_cameras_do_not_match(trained, tmp_path, capsys):

@@ -206,10 +206,15 @@ def evaluate(
     )
     held = held if isinstance(held, Mapping) else {}  # per training state, the views it held out
     at_training_state = eval_state in trained
-    if training_views and (alignment is not None or not at_training_state):
+    if training_views and not at_training_state:
         raise ValueError(
-            f"training views: {eval_state!r} is not a training state of this world ({', '.join(trained) or 'none'}) "
-            "in the capture's frame; name one of them with --state, or drop --training-views"
+            f"training views: {eval_state!r} is not a training state of this world ({', '.join(trained) or 'none'}); "
+            "name one of them with --state, or drop --training-views"
+        )
+    if training_views and alignment is not None:
+        raise ValueError(
+            f"training views: {capture} is a ground truth in another frame; score the training views against "
+            "the capture the world was trained on (or pass --same-frame)"
         )
     views = load_eval_views(
         capture,

@@ -5,7 +5,8 @@ angle to the nearest training direction, in the object's own frame.
 
 Each ``RUN`` is a ``dsg-suite`` output folder (``table.json``, ``worlds/<scene>/<method>.dsgworld``,
 ``data/<scene>``). For every test view and object of every scene the world is rendered as ``dsg-eval`` renders
-it, and the object's interior (its true mask eroded by one pixel) is scored. Beside the score stand the
+it, and the object's interior (its pixels in the ``objects`` region of
+:func:`train_world.eval.regions.region_masks`: its true mask less the outline) is scored. Beside the score stand the
 direction from the object's centre to the camera, in the object's frame at that state (:func:`object_directions`),
 and the angle between it and the nearest such direction of any training view of either training state
 (:func:`nearest_gap_deg`): zero where a training view saw the object from the same side, large where the object
@@ -28,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from train_world.eval.metrics import psnr_from_mse
 
 from ._results import default_out, write_result
 
@@ -71,7 +74,7 @@ def pooled_bins(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
         out[name] = {
             "views": len(rs),
             "pixels": n // 3,
-            "psnr": float(10 * np.log10(n / sq)) if sq > 0 else None,
+            "psnr": psnr_from_mse(sq / n) if sq > 0 else None,
         }
     return out
 
@@ -82,11 +85,10 @@ def _corr(a: list[float], b: list[float]) -> float | None:
 
 def score_world(world_path: Path, capture: Path) -> list[dict[str, Any]]:
     """One row per test view and object seen over at least 10 interior pixels."""
-    from scipy.ndimage import binary_erosion
-
     from dsg_gym.world import load_world
     from train_world.capture import load_capture
     from train_world.eval.evaluate import layer_mask, render_gaussians
+    from train_world.eval.regions import region_masks
 
     world = load_world(world_path)
     bg = tuple(world.metadata.get("background", (0.0, 0.0, 0.0)))
@@ -113,11 +115,12 @@ def score_world(world_path: Path, capture: Path) -> list[dict[str, Any]]:
         vm, Ks = v.viewmats.numpy(), v.Ks.numpy()
         rgb, _ = render_gaussians(g, vm, Ks, v.width, v.height, bg, world.splat_options, layer_mask(world))
         gt, masks = v.images.numpy(), v.masks.numpy()
+        interiors = [region_masks(m)["objects"] for m in masks]
         for k, oid in enumerate(world.object_ids):
             dirs, dist = object_directions(vm, poses[k])
             gap, j = nearest_gap_deg(seen[k][0], dirs)
             for i in range(len(gt)):
-                inside = binary_erosion(masks[i] == oid, iterations=1)
+                inside = interiors[i] & (masks[i] == oid)
                 n = int(inside.sum())
                 if n < 10:
                     continue
@@ -128,7 +131,7 @@ def score_world(world_path: Path, capture: Path) -> list[dict[str, Any]]:
                     "object": world.object_names[k],
                     "pixels": n,
                     "sq": sq,
-                    "psnr": float(10 * np.log10(3 * n / sq)) if sq > 0 else None,
+                    "psnr": psnr_from_mse(sq / (3 * n)) if sq > 0 else None,
                     "gap_deg": float(gap[i]),
                     "elevation_deg": float(np.degrees(np.arcsin(np.clip(dirs[i, 2], -1.0, 1.0)))),
                     "seen_elevation_deg": seen_elev[k],

@@ -12,6 +12,8 @@ from _captures import tiny_capture
 
 from benchmarks import view_coverage as vc
 from dsg_gym.world import write_world
+from train_world.capture import load_capture
+from train_world.eval.regions import region_masks
 from train_world.synth import geom_world as gw
 
 
@@ -79,6 +81,13 @@ def test_run_over_a_suite_folder(tmp_path):
         lo, hi = x["seen_elevation_deg"]
         assert -90.0 <= lo <= hi <= 90.0 and (x["gap_deg"] > 0 or lo <= x["elevation_deg"] <= hi)
     assert r["summary"]["bins"] == entry["bins"]
+    # the interior is the object's share of the evaluation's ``objects`` region (its mask less the outline)
+    cap = load_capture(run / "data" / "two_blocks", load_depth=False)
+    masks = cap.states["test_0"].masks.numpy()
+    for x in rows:
+        m = masks[x["view"]]
+        oid = world.object_ids[world.object_names.index(x["object"])]
+        assert x["pixels"] == int((region_masks(m)["objects"] & (m == oid)).sum()) < int((m == oid).sum())
     # no world of the asked method: a one-line error, nothing written
     assert vc.main([str(run), "--methods", "B", "--out", str(tmp_path / "none.json")]) == 2
     assert not (tmp_path / "none.json").exists()

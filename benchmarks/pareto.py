@@ -1,4 +1,4 @@
-"""Run time against error: ``python -m benchmarks.pareto [--out DIR]`` (issue #9).
+"""Run time against error: ``python -m benchmarks.pareto [--out DIR]``.
 
 Sweeps the settings that trade speed for accuracy, one axis at a time around the env's default (plus
 combined points), on the bundled world and the seven synthetic scenes' held-out test states (ground truth

@@ -1,4 +1,4 @@
-"""Numerical stress benchmark (issue #9): ``python -m benchmarks.stress [--quick] [--out FILE]``.
+"""Numerical stress benchmark: ``python -m benchmarks.stress [--quick] [--out FILE]``.
 
 The long versions of ``tests/stress`` (whose helpers it shares: ``tests/stress/_stress_ref.py``,
 ``tests/_worlds.py``, ``tests/_captures.py``), each section with pass/fail against the stated bounds:
@@ -366,7 +366,7 @@ SECTIONS = ("pose_chains", "env_pose_drift", "env_long_run", "render_extremes", 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m benchmarks.stress",
-        description="Numerical stress benchmark (issue #9): long pose compositions, long env runs (NaN/Inf, "
+        description="Numerical stress benchmark: long pose compositions, long env runs (NaN/Inf, "
         "memory), extreme renders (float32 vs float64), training under injected faults.",
     )
     ap.add_argument("--out", type=Path, help="JSON file to write (default: "

@@ -25,8 +25,8 @@ Settings:
 
 Writes ``{config, runs: [{mode, threads, setting, recon_ms, joint_ms, waiting}], summary: {"<mode>@<threads>":
 {setting: {recon_ms, joint_ms}}}, speed: {"<mode>@<threads>": {setting: joint speed over the idle run of the
-first mode and thread count}}}`` (each summary figure is the best of the rounds); speeds are ratios from one
-machine and session, the absolute times do not carry over.
+first mode and thread count}}}`` (each summary figure is the best of the rounds); speeds are ratios within
+one run on one machine; the absolute times do not carry over.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Long random episodes of ``DSGWorld-v0``: nothing non-finite anywhere and no memory growth (issue #9).
+"""Long random episodes of ``DSGWorld-v0``: nothing non-finite anywhere and no memory growth.
 
 CI-sized: a few thousand steps on the small two-box world (``tests/_worlds.py``) at 48x48 with every
 observation key rendered. ``benchmarks/stress.py`` runs 1e5 steps and reports the resident memory before and

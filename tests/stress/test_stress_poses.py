@@ -1,4 +1,4 @@
-"""Long pose compositions in float64 stay rigid and accurate (issue #9, the CI-sized version).
+"""Long pose compositions in float64 stay rigid and accurate (the CI-sized version).
 
 The reference for every check composes the *same* float64 increments in extended precision
 (``np.longdouble``, see ``_stress_ref``), so it measures only the rounding the float64 code adds. Bounds:

@@ -1,4 +1,4 @@
-"""``dsg_gym.splat.rasterize`` at extreme configurations (issue #9).
+"""``dsg_gym.splat.rasterize`` at extreme configurations.
 
 The cases (``_stress_ref.extreme_scene``; float32-representable inputs, so every precision renders the very
 same scene): far away (depths 1e2..5e9 m), a scene and its camera 1e4 m from the origin, behind the camera,

@@ -1,4 +1,4 @@
-"""Single-state training under injected faults (issue #9): a NaN gradient, corrupted checkpoints and an
+"""Single-state training under injected faults: a NaN gradient, corrupted checkpoints and an
 interrupted checkpoint write. Each stops with a clear error and leaves the last good checkpoint and world
 file intact and loadable; training resumes from them. Tiny runs: a 32x32 capture with 8 views per state and
 the ``quick`` preset cut to 12 steps (checkpoints every 4).

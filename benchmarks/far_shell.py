@@ -7,8 +7,10 @@ Each ``RUN`` is a ``dsg-suite`` output folder (``table.json``, ``worlds/<scene>/
 added). Per scene and method the world is scored at every test state as it is and with
 :func:`train_world.complete.shell.with_background_shell` (what ``dsg-train`` writes from the same training),
 with ``dsg-eval``'s region split (``error_by_region``): PSNR over all pixels, over the pixels some training view
-saw (``psnr_seen``) and over those none saw (``unseen``). Writes ``{runs: [{run, seed, scene, method, shell_gaussians,
-without: {...}, with: {...}}], summary}`` to ``benchmarks/results/far_shell/<date>-<commit>.json``.
+saw (``psnr_seen``) and over those none saw (``unseen``). ``--colours render,mean`` scores the shell with each
+way of colouring it (``ShellConfig.colours``; the first is ``with``, each also ``with_<colours>``). Writes
+``{runs: [{run, seed, scene, method, shell_gaussians, without: {...}, with: {...}, with_render: {...}, ...}],
+summary}`` to ``benchmarks/results/far_shell/<date>-<commit>.json``.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import sys
 import tempfile
 from pathlib import Path
 from typing import Any
+
+from train_world.complete.shell import ShellConfig
 
 from ._results import default_out, write_result
 
@@ -35,10 +39,13 @@ def _scores(report: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def score_run(run: Path, methods: list[str], work: Path) -> list[dict[str, Any]]:
-    """Both scores of every world of ``methods`` in one suite folder (evaluations under ``work``)."""
+def score_run(
+    run: Path, methods: list[str], work: Path, colours: tuple[str, ...] = ("render",)
+) -> list[dict[str, Any]]:
+    """The scores of every world of ``methods`` in one suite folder without the shell and with it, coloured
+    each way of ``colours`` (evaluations under ``work``)."""
     from dsg_gym.world import load_world, write_world
-    from train_world.complete.shell import with_background_shell, without_background_shell
+    from train_world.complete.shell import ShellConfig, with_background_shell, without_background_shell
     from train_world.eval.evaluate import evaluate_test_states
 
     table = json.loads((run / "table.json").read_text())
@@ -51,16 +58,20 @@ def score_run(run: Path, methods: list[str], work: Path) -> list[dict[str, Any]]
             plain = without_background_shell(load_world(world_path))
             name = f"{scene}-{m}-{table.get('seed')}"
             write_world(work / f"{name}-without.dsgworld", plain)
-            shelled = with_background_shell(plain)
-            write_world(work / f"{name}-with.dsgworld", shelled)
             cap = run / "data" / scene
             without = evaluate_test_states(work / f"{name}-without.dsgworld", cap, work / f"{name}-without")
-            with_ = evaluate_test_states(work / f"{name}-with.dsgworld", cap, work / f"{name}-with")
-            rows.append({
-                "run": str(run), "seed": table.get("seed"), "scene": scene, "method": m,
-                "shell_gaussians": shelled.metadata["background_shell"]["gaussians"],
-                "without": _scores(without), "with": _scores(with_),
-            })  # fmt: skip
+            row = {"run": str(run), "seed": table.get("seed"), "scene": scene, "method": m,
+                   "without": _scores(without)}  # fmt: skip
+            for mode in colours:
+                shelled = with_background_shell(plain, ShellConfig(colours=mode))
+                write_world(work / f"{name}-{mode}.dsgworld", shelled)
+                scores = _scores(
+                    evaluate_test_states(work / f"{name}-{mode}.dsgworld", cap, work / f"{name}-{mode}")
+                )
+                row.setdefault("shell_gaussians", shelled.metadata["background_shell"]["gaussians"])
+                row.setdefault("with", scores)
+                row[f"with_{mode}"] = scores
+            rows.append(row)
     return rows
 
 
@@ -73,13 +84,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("runs", type=Path, nargs="+", help="dsg-suite output folders")
     p.add_argument("--methods", default="BCP", help="comma-separated suite methods (default BCP)")
     p.add_argument(
+        "--colours",
+        default="render",
+        help="comma-separated ways of colouring the shell (ShellConfig.colours: render, mean; default render)",
+    )
+    p.add_argument(
         "--out", type=Path, help="JSON to write (default: benchmarks/results/far_shell/<date>-<commit>.json)"
     )
     args = p.parse_args(argv)
     methods = [m for m in args.methods.split(",") if m]
+    colours = tuple(c for c in args.colours.split(",") if c)
     try:
+        if not colours:
+            raise ValueError("--colours names no way of colouring the shell")
+        for c in colours:
+            ShellConfig(colours=c)  # a bad name fails here, before any evaluation
         with tempfile.TemporaryDirectory() as tmp:
-            rows = [r for run in args.runs for r in score_run(run, methods, Path(tmp))]
+            rows = [r for run in args.runs for r in score_run(run, methods, Path(tmp), colours)]
     except (OSError, ValueError, KeyError) as e:
         print(f"far_shell: error: {e}", file=sys.stderr)
         return 2
@@ -87,14 +108,19 @@ def main(argv: list[str] | None = None) -> int:
         print("far_shell: error: no worlds of those methods in those folders", file=sys.stderr)
         return 2
     gains = [r["with"]["psnr"] - r["without"]["psnr"] for r in rows]
+    seen_changes = [
+        r["with"]["psnr_seen"] - r["without"]["psnr_seen"]
+        for r in rows
+        if r["with"]["psnr_seen"] is not None and r["without"]["psnr_seen"] is not None
+    ]
     summary = {
         "worlds": len(rows),
         "mean_psnr_without": sum(r["without"]["psnr"] for r in rows) / len(rows),
         "mean_psnr_with": sum(r["with"]["psnr"] for r in rows) / len(rows),
         "mean_gain_db": sum(gains) / len(gains),
         "min_gain_db": min(gains),
-        "worst_seen_change_db": min(r["with"]["psnr_seen"] - r["without"]["psnr_seen"] for r in rows
-                                    if r["with"]["psnr_seen"] is not None and r["without"]["psnr_seen"] is not None),
+        "worst_seen_change_db": min(seen_changes, default=None),
+        **{f"mean_psnr_with_{c}": sum(r[f"with_{c}"]["psnr"] for r in rows) / len(rows) for c in colours},
     }  # fmt: skip
     out = args.out or default_out("far_shell")
     write_result(out, {"runs": rows, "summary": summary})

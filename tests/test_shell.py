@@ -178,3 +178,39 @@ def test_without_undoes_with_exactly():
     assert shelled.metadata["background_shell"]["gaussians"] > 0
     assert encode_world(without_background_shell(shelled)) == encode_world(world)
     assert without_background_shell(world) is world
+
+
+def test_render_colours_continue_what_the_cameras_saw_not_what_they_never_saw():
+    # the room's walls end at 0.5 m, within what the level cameras see; above the +x wall, out of every view,
+    # float untrained Gaussians of another colour (magenta), as a trained world has beyond its views
+    room = _room().subset(np.flatnonzero(_room().means[:, 2] <= 0.5))
+    s = np.linspace(-1.0, 1.0, 40)
+    a, b = np.meshgrid(s, np.linspace(0.95, 1.2, 6))
+    stray = GaussianSet(
+        means=np.stack([np.full(a.size, 1.0), a.ravel(), b.ravel()], 1),
+        quats=np.tile([1.0, 0, 0, 0], (a.size, 1)),
+        scales=np.full((a.size, 3), 0.05),
+        opacities=np.full(a.size, 0.99),
+        sh=rgb_to_sh0(np.tile([0.9, 0.1, 0.9], (a.size, 1)))[:, None, :],
+        features=np.tile([2.0, -1.0], (a.size, 1)),
+    )
+    bg, cams = GaussianSet.concat([room, stray]), _cameras()
+    assert not _projects_inside(stray.means.astype(np.float64), cams).any()
+    rendered = background_shell(bg, [cams])
+    mean = background_shell(bg, [cams], ShellConfig(colours="mean"))
+    assert np.array_equal(rendered.means, mean.means) and np.array_equal(rendered.features, mean.features)
+    centre = np.median(bg.means[bg.opacities >= ShellConfig().min_opacity], axis=0)
+    d = rendered.means - centre
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    above = (d[:, 0] > 0.8) & (d[:, 2] > 0.2)  # over the +x wall, where the stray Gaussians are
+    assert above.sum() > 10
+    red = rgb_to_sh0(np.array(WALL_RGB["+x"]))
+    assert np.allclose(rendered.sh[above, 0], red, atol=rgb_to_sh0(np.array([0.55] * 3))[0] + 0.2)
+    assert np.abs(rendered.sh[above, 0] - red).max() < 0.35  # the wall's red, continued up
+    assert np.abs(mean.sh[above, 0] - red).max() > 1.0  # the mean takes the stray magenta
+    # no cameras: nothing was seen, so the mean colour stays
+    assert np.array_equal(
+        background_shell(bg, []).sh, background_shell(bg, [], ShellConfig(colours="mean")).sh
+    )
+    with pytest.raises(ValueError, match="colours"):
+        ShellConfig(colours="nearest")

@@ -8,10 +8,19 @@ each facing the sphere's centre and coloured like the background Gaussians farth
 - Centre and radius: the median of the background Gaussians' centres (those with opacity >=
   ``min_opacity``), and ``margin`` times the ``radius_percentile`` of their distances from it, so the shell
   lies behind nearly all of the background.
-- Colour and identity features: for each of ``directions`` evenly spread directions (a Fibonacci sphere), the
-  ``neighbours`` background Gaussians nearest in direction; the mean DC colour and mean features of those
-  among them at least ``far_fraction`` of the farthest one's distance out (the surface at the back, not the
-  table in front). Higher SH bands are zero.
+- Identity features, and the colour where the next item gives none: for each of ``directions`` evenly spread
+  directions (a Fibonacci sphere), the ``neighbours`` background Gaussians nearest in direction; the mean DC
+  colour and mean features of those among them at least ``far_fraction`` of the farthest one's distance out
+  (the surface at the back, not the table in front). Higher SH bands are zero.
+- Colour (``colours="render"``, the default, and at least one camera): the background rendered all around
+  from the cameras' mean centre (:mod:`train_world.complete.panorama`, cube faces of ``panorama`` pixels) and
+  resampled on an elevation x azimuth grid (``grid_rows`` x twice as many); a cell is known where the render
+  is opaque (alpha >= ``known_alpha``) and its surface point lies in some camera's image. Every other cell
+  takes the nearest known cell up or down its own azimuth, so a wall above the captured part continues the
+  colour of its top (a room's walls are vertical), and a column with none known the nearest known
+  direction. A shell Gaussian takes its cell's colour, in its direction from that centre, when the surface the
+  colour comes from lies at least ``far_enough`` of the shell Gaussian's distance away (a wall, not the table
+  seen from above); else the mean colour above. ``colours="mean"`` keeps the mean colour everywhere.
 - Only the unseen part is kept: a shell Gaussian whose centre projects into the image of any of the world's
   cameras is dropped, so the shell stays out of what those views saw. Near the edge of a view, the disc of a
   shell Gaussian just outside it can still show where the surface in front is not quite opaque;
@@ -32,13 +41,22 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from dsg_gym.cameras import Cameras
-from dsg_gym.gaussians import GaussianSet
+from dsg_gym.gaussians import GaussianSet, rgb_to_sh0
 from dsg_gym.world import World
+from train_world.complete.panorama import (
+    continue_columns,
+    equirect_cell,
+    equirect_directions,
+    render_cube,
+    sample_cube,
+    seen_by_cameras,
+)
 
 __all__ = [
     "ShellConfig",
     "background_shell",
     "fibonacci_directions",
+    "rendered_colours",
     "with_background_shell",
     "without_background_shell",
 ]
@@ -58,6 +76,11 @@ class ShellConfig:
     thickness: float = 0.05  # its extent along its normal, relative to its extent across
     opacity: float = 0.99
     cull_sigmas: float = 0.0  # dropped when its centre plus this many of its extents projects into a view
+    colours: str = "render"  # "render" or "mean" (module docstring)
+    panorama: int = 256  # cube face size of the render, pixels
+    grid_rows: int = 360  # elevation rows of the grid the render is continued on (twice as many azimuths)
+    known_alpha: float = 0.9  # a render cell with at least this alpha (and seen by a camera) is known
+    far_enough: float = 0.5  # a colour's surface must lie this share of the shell Gaussian's distance away
 
     def __post_init__(self) -> None:
         if self.directions < 1 or self.neighbours < 1:
@@ -68,6 +91,12 @@ class ShellConfig:
             raise ValueError("ShellConfig: need margin >= 1, spread > 0, thickness > 0 and opacity in (0, 1]")
         if self.cull_sigmas < 0:
             raise ValueError("ShellConfig: cull_sigmas must be >= 0")
+        if self.colours not in ("render", "mean"):
+            raise ValueError(f"ShellConfig: colours must be 'render' or 'mean', got {self.colours!r}")
+        if self.panorama < 2 or self.grid_rows < 2:
+            raise ValueError("ShellConfig: panorama and grid_rows must be >= 2")
+        if not (0.0 < self.known_alpha <= 1.0 and self.far_enough >= 0.0):
+            raise ValueError("ShellConfig: need known_alpha in (0, 1] and far_enough >= 0")
 
 
 def fibonacci_directions(n: int) -> np.ndarray:
@@ -104,13 +133,52 @@ def _seen(points: np.ndarray, extent: float, cameras: Iterable[Cameras]) -> np.n
     return seen
 
 
+def rendered_colours(
+    background: GaussianSet,
+    cameras: list[Cameras],
+    points: np.ndarray,
+    config: ShellConfig,
+    splat_options: dict | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``colours="render"`` colour (module docstring) of shell Gaussians at ``points [N, 3]``: RGB
+    ``[N, 3]`` in [0, 1] and whether each has one, bool ``[N]`` (none without cameras or without a known
+    cell)."""
+    c = config
+    none = np.zeros((len(points), 3)), np.zeros(len(points), bool)
+    if not cameras:
+        return none
+    origin = np.concatenate(
+        [np.linalg.inv(np.asarray(cam.viewmats, np.float64))[:, :3, 3] for cam in cameras]
+    )
+    origin = origin.mean(axis=0)
+    colour, alpha, distance = render_cube(background, origin, c.panorama, splat_options)
+    rows, cols = c.grid_rows, 2 * c.grid_rows
+    grid = equirect_directions(rows, cols)
+    flat = grid.reshape(-1, 3)
+    g_colour, g_alpha, g_dist = (sample_cube(v, flat) for v in (colour, alpha, distance))
+    known = (g_alpha >= c.known_alpha) & seen_by_cameras(origin + flat * g_dist[:, None], cameras)
+    if not known.any():
+        return none
+    src = continue_columns(known.reshape(rows, cols), grid).reshape(-1)
+    offset = np.asarray(points, np.float64) - origin
+    reach = np.linalg.norm(offset, axis=1)
+    r, k = equirect_cell(offset / np.maximum(reach, 1e-12)[:, None], rows, cols)
+    s = src[r * cols + k]
+    return np.clip(g_colour[s], 0.0, 1.0), g_dist[s] >= c.far_enough * reach
+
+
 def background_shell(
-    background: GaussianSet, cameras: Iterable[Cameras], config: ShellConfig | None = None
+    background: GaussianSet,
+    cameras: Iterable[Cameras],
+    config: ShellConfig | None = None,
+    splat_options: dict | None = None,
 ) -> GaussianSet:
     """The shell Gaussians (module docstring) for ``background`` seen by ``cameras``, labelled background (0)
     with ``background``'s SH width and features. Empty when the background has fewer Gaussians than
-    ``config.neighbours`` at ``config.min_opacity``."""
+    ``config.neighbours`` at ``config.min_opacity``. ``splat_options``: the world's (``World.splat_options``),
+    for the render of ``colours="render"``."""
     c = config or ShellConfig()
+    cameras = list(cameras)
     keep = np.flatnonzero(background.opacities >= c.min_opacity)
     F, k_sh = background.num_features, background.sh.shape[1]
     if len(keep) < c.neighbours:
@@ -134,6 +202,10 @@ def background_shell(
     sh = np.zeros((len(dirs), k_sh, 3))
     sh[:, 0] = colour
     unseen = ~_seen(centres, c.cull_sigmas * across, cameras)
+    if c.colours == "render" and unseen.any():
+        rgb, ok = rendered_colours(background, cameras, centres[unseen], c, splat_options)
+        at = np.flatnonzero(unseen)[ok]
+        sh[at, 0] = rgb_to_sh0(rgb[ok])
     shell = GaussianSet(
         means=centres,
         quats=_facing(dirs),
@@ -152,7 +224,7 @@ def with_background_shell(world: World, config: ShellConfig | None = None) -> Wo
     recorded) counting them. A world that has a shell already is returned as it is."""
     if "background_shell" in world.metadata:
         return world
-    shell = background_shell(world.background, world.cameras.values(), config)
+    shell = background_shell(world.background, world.cameras.values(), config, world.splat_options)
     meta = {**world.metadata, "background_shell": {"gaussians": int(shell.num)}}
     if "num_gaussians" in meta:
         meta["num_gaussians"] = int(meta["num_gaussians"]) + int(shell.num)

@@ -1,0 +1,34 @@
+"""benchmarks.far_shell: suite worlds scored without the shell and with it, coloured each way."""
+
+from __future__ import annotations
+
+import json
+
+from _captures import tiny_capture
+
+from benchmarks import far_shell
+from dsg_gym.world import load_world, write_world
+from train_world.synth import geom_world as gw
+
+
+def test_far_shell_scores_without_and_with_each_colouring(tmp_path):
+    run = tmp_path / "run"
+    tiny_capture(run / "data", test_views=2, test_states=1)
+    world = gw.to_world(gw.build_geom_world("two_blocks", gw.GeomWorldConfig(detail=0.5)))
+    write_world(run / "worlds" / "two_blocks" / "BCP.dsgworld", world)
+    (run / "table.json").write_text(json.dumps({"seed": 0, "scenes": {"two_blocks": {"BCP": {}}}}))
+    out = tmp_path / "fs.json"
+    assert far_shell.main([str(run), "--colours", "render,mean", "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    (row,) = r["runs"]
+    assert row["scene"] == "two_blocks" and row["shell_gaussians"] > 0
+    assert row["with"] == row["with_render"] and set(row) >= {"without", "with_render", "with_mean"}
+    for k in ("without", "with_render", "with_mean"):
+        assert 0 < row[k]["psnr"] < 100
+    assert row["with_render"]["psnr"] != row["with_mean"]["psnr"]  # the two colourings differ somewhere
+    assert r["summary"]["worlds"] == 1 and "mean_psnr_with_mean" in r["summary"]
+    assert r["summary"]["worst_seen_change_db"] is None  # this world records no training views: no coverage
+    assert load_world(run / "worlds" / "two_blocks" / "BCP.dsgworld").background.num == world.background.num
+    # a colouring it does not know: a one-line error, nothing written
+    assert far_shell.main([str(run), "--colours", "nearest", "--out", str(tmp_path / "x.json")]) == 2
+    assert not (tmp_path / "x.json").exists()

@@ -216,7 +216,8 @@ def test_dsg_train_refines_like_the_standalone_command(unrefined, tmp_path, caps
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["refine_steps"] == 25 and summary["refine_seconds"] > 0
     after = tmp_path / "after.dsgworld"
-    assert refine_main([str(path), str(cap), "--out", str(after), "--steps", "25", "--quiet"]) == 0
+    quick_like = ["--steps", "25", "--no-layers", "--support-weight", "0", "--quiet"]  # quick's refinement
+    assert refine_main([str(path), str(cap), "--out", str(after), *quick_like]) == 0
     a, b = load_world(inproc), load_world(after)
     assert all(np.array_equal(x, y) for x, y in zip(_arrays(a), _arrays(b)))
     assert a.metadata["refine"]["steps"] == b.metadata["refine"]["steps"] == 25
@@ -271,3 +272,55 @@ def test_presets_refine_by_default_except_the_paper_s():
     assert get_preset("quick").dual_refine_steps > 0
     with pytest.raises(ValueError, match="dual_refine_steps"):
         get_preset("quick", dual_refine_steps=-1)
+
+
+def test_the_default_preset_refines_in_layers_with_the_support_term(unrefined, tmp_path):
+    import dataclasses
+
+    from train_world.cli.train_options import refine_config
+    from train_world.dual_state.config import training_options
+    from train_world.single_state.presets import get_preset
+
+    cap, path = unrefined
+    d, q, p = (get_preset(n) for n in ("default", "quick", "paper"))
+    assert (d.dual_layers, d.dual_support_weight) == (True, 0.1)
+    assert (q.dual_layers, q.dual_support_weight) == (p.dual_layers, p.dual_support_weight) == (False, 0.0)
+    with pytest.raises(ValueError, match="dual_support_weight"):
+        get_preset("quick", dual_support_weight=-1.0)
+
+    def parse(*a):
+        return dual_cli.two_state_parser().parse_args([str(cap), "--out", str(tmp_path / "x.dsgworld"), *a])
+
+    # dsg-train: the preset's support weight and layers unless given
+    assert dual_cli.two_state_config(parse()).support_weight == 0.1
+    assert dual_cli.two_state_config(parse("--support-weight", "0")).support_weight == 0.0
+    assert dual_cli.two_state_config(parse("--preset", "paper")).support_weight == 0.0
+    assert refine_config(parse(), d).layers is True and refine_config(parse(), d).steps == 4000
+    assert refine_config(parse("--no-layers"), d).layers is False
+    assert (
+        refine_config(parse("--refine-steps", "0"), d).layers is False
+    )  # the preset's layers need a refinement
+    with pytest.raises(ValueError, match="--layers acts in the refinement"):
+        refine_config(parse("--layers", "--refine-steps", "0"), d)
+    assert refine_config(parse("--preset", "quick"), q).layers is False
+    assert refine_config(parse("--preset", "quick", "--layers"), q).layers is True
+    # a checkpoint written before the preset carried them resumes: the preset's refinement settings and its
+    # support weight (which the run's ``support_weight`` carries) are not training options
+    cfg = dual_cli.two_state_config(parse())
+    old = dataclasses.replace(cfg.base.preset, dual_layers=False, dual_support_weight=0.0)
+    assert training_options(dataclasses.replace(cfg, base=dataclasses.replace(cfg.base, preset=old))) == (
+        training_options(cfg)
+    )
+    # the refine command defaults to the default preset's: layers, and the support term for a world with a table
+    world = load_world(path)
+    assert "table" in world.metadata
+    out = tmp_path / "d.dsgworld"
+    assert refine_main([str(path), str(cap), "--out", str(out), "--steps", "5", "--quiet"]) == 0
+    w = load_world(out)
+    assert w.compositing == "layers" and w.metadata["refine"]["support_weight"] == 0.1
+    bare = tmp_path / "bare.dsgworld"
+    write_world(
+        bare, dataclasses.replace(world, metadata={k: v for k, v in world.metadata.items() if k != "table"})
+    )
+    assert refine_main([str(bare), str(cap), "--out", str(out), "--steps", "5", "--quiet"]) == 0
+    assert load_world(out).metadata["refine"]["support_weight"] == 0.0

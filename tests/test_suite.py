@@ -405,3 +405,29 @@ def test_world_file_prefers_the_current_extension_and_reuses_older_runs(tmp_path
     assert world_file(tmp_path, "BCP") == tmp_path / "BCP.dsgw"  # an older run's world is reused
     (tmp_path / "BCP.dsgworld").write_bytes(b"y")
     assert world_file(tmp_path, "BCP") == tmp_path / "BCP.dsgworld"
+
+
+def test_ours_train_with_the_preset_s_support_term_and_layers_unless_given(tmp_path):
+    from train_world.suite.records import ours_options, two_state_schedule
+
+    full = two_state_schedule("default", None)
+    assert ours_options("default", full, None, None) == (0.1, True)
+    assert ours_options("default", full, 0, False) == (0.0, False)
+    assert ours_options("default", two_state_schedule("default", None, 0), None, None) == (0.1, False)
+    assert ours_options("quick", two_state_schedule("quick", None), None, None) == (0.0, False)
+    # a table from before they were recorded (support_weight None, no layers) had neither: it merges with
+    # a table that says so, and not with one of the default preset's
+    legacy = tmp_path / "legacy.json"
+    legacy.write_text(json.dumps(_table({"two_blocks": {"a": _run(1.0, 1)}}, support_weight=None)))
+    plain = tmp_path / "plain.json"
+    plain.write_text(
+        json.dumps(_table({"five_small": {"a": _run(2.0, 1)}}, support_weight=0.0, layers=False))
+    )
+    both = tmp_path / "both.json"
+    both.write_text(json.dumps(_table({"five_small": {"a": _run(2.0, 1)}}, support_weight=0.1, layers=True)))
+    assert suite_main(["--out", str(tmp_path / "m"), "--merge", str(legacy), str(plain)]) == 0
+    merged = json.loads((tmp_path / "m" / "table.json").read_text())
+    assert (merged["support_weight"], merged["layers"]) == (0.0, False)
+    assert set(merged["scenes"]) == {"two_blocks", "five_small"}
+    assert suite_main(["--out", str(tmp_path / "bad"), "--merge", str(legacy), str(both)]) == 2
+    assert not (tmp_path / "bad").exists()

@@ -21,20 +21,27 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("world", type=Path, help="two-state world file (dsg-train on a capture with two states)")
     p.add_argument("capture", type=Path, help="the capture it was trained on")
     p.add_argument("--out", type=Path, required=True, help="world file to write")
-    steps = get_preset("default").dual_refine_steps
-    p.add_argument("--steps", type=int, default=steps, help=f"default {steps}, as dsg-train's default preset")
+    d = get_preset("default")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=d.dual_refine_steps,
+        help=f"default {d.dual_refine_steps}, as dsg-train's default preset",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--support-weight",
         type=float,
-        default=0.0,
         metavar="W",
-        help="weight of the support term (default 0: off)",
+        help=f"weight of the support term (default {d.dual_support_weight:g}, as dsg-train's default preset, for a "
+        "world that records its table top; 0 for one that does not; 0: off)",
     )
     p.add_argument(
         "--layers",
-        action="store_true",
-        help="two layers, background and objects merged per pixel by expected depth (the world records it)",
+        action=argparse.BooleanOptionalAction,
+        default=d.dual_layers,
+        help="two layers, background and objects merged per pixel by expected depth (the world records it; "
+        f"default {'on' if d.dual_layers else 'off'}, as dsg-train's default preset)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -50,12 +57,13 @@ def main(argv: list[str] | None = None) -> int:
         world = load_world(args.world)
         if "refine" in world.metadata and world.metadata["refine"].get("steps", 0):
             raise ValueError(f"{args.world} is refined already ({world.metadata['refine']['steps']} steps)")
+        support = args.support_weight
+        if support is None:
+            support = get_preset("default").dual_support_weight if "table" in world.metadata else 0.0
         refined, info = refine_world(
             world,
             training_views_of(world, args.capture),
-            RefineConfig(
-                steps=args.steps, seed=args.seed, support_weight=args.support_weight, layers=args.layers
-            ),
+            RefineConfig(steps=args.steps, seed=args.seed, support_weight=support, layers=args.layers),
             progress=not args.quiet,
         )
         write_world(args.out, refined)

@@ -53,12 +53,13 @@ def _parser() -> argparse.ArgumentParser:
         "--support-weight",
         type=float,
         metavar="W",
-        help="weight of the support term of ours (dsg-train --support-weight; default: dsg-train's, off)",
+        help="weight of the support term of ours (dsg-train --support-weight; default: the preset's)",
     )
     p.add_argument(
         "--layers",
-        action="store_true",
-        help="ours refined and rendered in two layers, background and objects (dsg-train --layers)",
+        action=argparse.BooleanOptionalAction,
+        help="ours refined and rendered in two layers, background and objects (dsg-train --layers; "
+        "default: the preset's)",
     )
     p.add_argument(
         "--max-gaussians",

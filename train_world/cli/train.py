@@ -43,6 +43,7 @@ from train_world.cli.train_options import (
     add_mip_argument,
     add_shell_argument,
     camera_options,
+    refine_config,
 )
 from train_world.complete.shell import with_background_shell
 from train_world.dual_state.config import JOINT_OPTIONS, DualConfig
@@ -231,16 +232,17 @@ def two_state_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--support-weight",
         type=float,
-        default=0.0,
         metavar="W",
         help="weight of the support term, which keeps object Gaussians above the table top, in the joint "
-        "phase and the refinement (default 0: off; captures with a table and masks only)",
+        "phase and the refinement (default: the preset's, 0.1 for default, 0 (off) for quick and paper; "
+        "captures with a table and masks only)",
     )
     p.add_argument(
         "--layers",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
         help="refine and render the world as two layers, background and objects merged per pixel by expected "
-        "depth (the world records it; every renderer follows; see docs/training.md)",
+        "depth (the world records it; every renderer follows; see docs/training.md; default: the preset's, "
+        "on for default, off for quick and paper)",
     )
     p.add_argument(
         "--refine-steps",
@@ -300,7 +302,7 @@ def two_state_config(args: argparse.Namespace) -> DualConfig:
         else args.refine_motions,
         motion_lr_translation=args.motion_lr_translation,
         motion_lr_rotation=args.motion_lr_rotation,
-        support_weight=args.support_weight,
+        support_weight=preset.dual_support_weight if args.support_weight is None else args.support_weight,
     )
 
 
@@ -393,7 +395,7 @@ def main_single_state(argv: list[str] | None = None) -> int:
 
 def main_two_state(argv: list[str] | None = None) -> int:
     args = two_state_parser().parse_args(argv)
-    from train_world.dual_state.refine import RefineConfig, StateViews, refine_world
+    from train_world.dual_state.refine import StateViews, refine_world
     from train_world.dual_state.trainer import DualTrainer
     from train_world.single_state.checkpoint import CheckpointError
     from train_world.single_state.trainer import TrainingDiverged
@@ -402,13 +404,7 @@ def main_two_state(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     try:
         config = two_state_config(args)
-        refine = RefineConfig(
-            steps=config.base.preset.dual_refine_steps if args.refine_steps is None else args.refine_steps,
-            seed=args.seed,
-            layers=args.layers,
-        )
-        if refine.layers and refine.steps == 0:
-            raise ValueError("--layers acts in the refinement; this run has none: drop --layers or refine")
+        refine = refine_config(args, config.base.preset)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         trainer = DualTrainer(args.capture, config, checkpoint=ckpt)
         if trainer.table_bounds is not None and trainer.has_masks:
@@ -473,7 +469,7 @@ def main_two_state(argv: list[str] | None = None) -> int:
         "joint_from_step": trainer.joint_start,
         "holdout_every": config.base.holdout_every,
         **{k: getattr(config, k) for k in JOINT_OPTIONS},
-        "layers": bool(args.layers),
+        "layers": refine.layers,
         "training_views": [len(trainer.data1), len(trainer.data2)],
         "gaussians": int(world.metadata["num_gaussians"]),
         "field_sizes": dual["field_sizes"],

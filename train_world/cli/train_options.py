@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from train_world.dual_state.refine import RefineConfig
+    from train_world.single_state.presets import Preset
 
 __all__ = [
     "add_absgrad_argument",
@@ -12,6 +16,7 @@ __all__ = [
     "add_mip_argument",
     "add_shell_argument",
     "camera_options",
+    "refine_config",
 ]
 
 
@@ -89,3 +94,16 @@ def camera_options(args: argparse.Namespace) -> dict[str, Any]:
         "camera_lr_rotation": args.camera_lr_rotation,
         "camera_lr_translation": args.camera_lr_translation,
     }
+
+
+def refine_config(args: argparse.Namespace, preset: Preset) -> RefineConfig:
+    """The merged world's refinement: ``--refine-steps`` and ``--layers`` or the preset's (``--layers`` without
+    a refinement is a ``ValueError``; the preset's layers without one are off). The support weight is set once the
+    capture is known to have a table and masks."""
+    from train_world.dual_state.refine import RefineConfig
+
+    steps = preset.dual_refine_steps if args.refine_steps is None else args.refine_steps
+    if args.layers and steps == 0:
+        raise ValueError("--layers acts in the refinement; this run has none: drop --layers or refine")
+    layers = preset.dual_layers if args.layers is None else args.layers
+    return RefineConfig(steps=steps, seed=args.seed, layers=bool(layers) and steps > 0)

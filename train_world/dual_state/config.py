@@ -34,9 +34,12 @@ def joint_start_step(joint_from: float, iterations: int) -> int:
 
 
 def training_options(config: DualConfig) -> DualConfig:
-    """``config`` without what only acts after training (the merged world's refinement step count), for
-    comparing a checkpoint's options with a run's."""
-    preset = dataclasses.replace(config.base.preset, dual_refine_steps=0)
+    """``config`` without what only acts after training (the merged world's refinement: its step count and
+    layers) or is set elsewhere (the preset's support weight, which ``support_weight`` carries), for comparing
+    a checkpoint's options with a run's."""
+    preset = dataclasses.replace(
+        config.base.preset, dual_refine_steps=0, dual_layers=False, dual_support_weight=0.0
+    )
     return dataclasses.replace(config, base=dataclasses.replace(config.base, preset=preset))
 
 

@@ -92,6 +92,11 @@ class Preset:
     # not DSG-World's: Adam steps refining the merged world on both states' training views after training
     # (:mod:`train_world.dual_state.refine`; 0: off, as in the paper)
     dual_refine_steps: int = 0
+    # not DSG-World's either: the refinement in two layers, background and objects merged per pixel by expected
+    # depth (``dsg-train --layers``), and the weight of the support term in the joint phase and the refinement
+    # (``--support-weight``; 0: off)
+    dual_layers: bool = False
+    dual_support_weight: float = 0.0
     lrs: LearningRates = field(default_factory=LearningRates)
 
     def __post_init__(self) -> None:
@@ -119,6 +124,11 @@ class Preset:
         if not 0.0 <= self.dual_joint_from <= 1.0:
             raise ValueError(
                 f"preset {self.name!r}: dual_joint_from must be in [0, 1], got {self.dual_joint_from}"
+            )
+        if not (math.isfinite(self.dual_support_weight) and self.dual_support_weight >= 0):
+            raise ValueError(
+                f"preset {self.name!r}: dual_support_weight must be a finite number >= 0, "
+                f"got {self.dual_support_weight}"
             )
         if self.dual_refine_steps < 0:
             raise ValueError(
@@ -149,9 +159,10 @@ _AA = {"rasterize_mode": "antialiased", "eps2d": MIP_EPS2D, "filter3d_scale": 0.
 # its 32-pixel test data the filters cost 2 dB.
 # ``default`` trains two states (DSG-World) for 4500 steps, the first 3000 reconstruction only (a reconstruction
 # step renders two views, a joint step about five), with at most 60k Gaussians per field, then refines the merged
-# world on both states' views for 4000 steps (:mod:`train_world.dual_state.refine`). The schedule was chosen
-# against shorter and differently split ones on the synthetic scenes (docs/training.md; figures in
-# docs/benchmarks.md).
+# world on both states' views for 4000 steps (:mod:`train_world.dual_state.refine`), in two layers, with the
+# support term at 0.1 in the joint phase and the refinement. The schedule was chosen against shorter and
+# differently split ones on the synthetic scenes, the layers and the support term against one sorted list
+# without it (docs/training.md; figures in docs/benchmarks.md). ``quick`` and ``paper`` leave both off.
 PRESETS: dict[str, Preset] = {
     "quick": Preset(
         name="quick",
@@ -187,6 +198,8 @@ PRESETS: dict[str, Preset] = {
         dual_max_gaussians=60_000,
         dual_joint_from=2 / 3,
         dual_refine_steps=4000,
+        dual_layers=True,
+        dual_support_weight=0.1,
         **_AA,
     ),
     "paper": Preset(

@@ -37,6 +37,18 @@ def two_state_schedule(preset: str, iterations: int | None, refine_steps: int | 
     return [p.iterations, joint_start_step(p.dual_joint_from, p.iterations), refine]
 
 
+def ours_options(
+    preset: str, schedule: list[int], support_weight: float | None, layers: bool | None
+) -> tuple[float, bool]:
+    """The support weight and the layers ours train with: the given ones or (``None``) the preset's; no layers
+    when ``schedule`` (:func:`two_state_schedule`) has no refinement."""
+    from train_world.single_state.presets import get_preset
+
+    p = get_preset(preset)
+    weight = p.dual_support_weight if support_weight is None else float(support_weight)
+    return weight, (p.dual_layers if layers is None else bool(layers)) and schedule[2] > 0
+
+
 OURS = ("B", "BC", "BCP")
 # what dsg-train did for tables that do not record their schedule: the joint phase from half the steps, and
 # ``default`` trained 3000 two-state steps

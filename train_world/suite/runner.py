@@ -47,6 +47,7 @@ from typing import Any
 from train_world.suite.records import (
     LEGACY_HOLDOUT,
     OURS,
+    ours_options,
     refuse_mismatched_worlds,
     row_schedule,
     two_state_schedule,
@@ -58,6 +59,18 @@ __all__ = ["METHODS", "merge_tables", "run_suite"]
 # settings that must agree for runs to share one table
 _SETTINGS = ("preset", "iterations", "mip", "max_gaussians", "synth_args", "seed", "pseudo_every",
              "align_downscale", "support_weight", "layers")  # fmt: skip
+
+
+def _setting(table: dict[str, Any], key: str) -> Any:
+    """A table's setting; tables from before the preset set the support term and the layers record none
+    (``None``, absent) for dsg-train's default then, no support term (0) and one sorted list."""
+    v = table.get(key)
+    if key == "support_weight":
+        return 0.0 if v is None else float(v)
+    if key == "layers":
+        return bool(v)
+    return v
+
 
 # name -> (label in the table, extra dsg-train options or None for baselines)
 METHODS: dict[str, tuple[str, list[str] | None]] = {
@@ -129,12 +142,12 @@ def merge_tables(tables: list[dict[str, Any]], methods: list[str] | None = None)
     first = tables[0]
     for i, t in enumerate(tables[1:], start=1):
         for k in _SETTINGS:
-            if t.get(k) != first.get(k):
+            if _setting(t, k) != _setting(first, k):
                 raise ValueError(
-                    f"table {i} has {k}={t.get(k)!r} but table 0 has {first.get(k)!r}: "
+                    f"table {i} has {k}={_setting(t, k)!r} but table 0 has {_setting(first, k)!r}: "
                     "runs with different settings do not share a table"
                 )
-    out: dict[str, Any] = {k: first.get(k) for k in _SETTINGS}
+    out: dict[str, Any] = {k: _setting(first, k) for k in _SETTINGS}
     out.update(scenes={}, methods=[], provenance=[])
     schedules: dict[tuple[str, str], tuple[int, ...]] = {}
     holdouts: dict[tuple[str, str], int] = {}
@@ -234,12 +247,13 @@ def run_suite(
     mip: bool | None = None,
     refine_steps: int | None = None,
     support_weight: float | None = None,
-    layers: bool = False,
+    layers: bool | None = None,
 ) -> dict[str, Any]:
     """Run the comparison (module docstring); returns the table dictionary also written to ``table.json``.
     ``refine_steps``: refinement steps of ours (``dsg-train --refine-steps``; ``None``: the preset's, 0: the
-    paper's method without refinement); ``layers``: ours refined and rendered in two layers (``dsg-train
-    --layers``)."""
+    paper's method without refinement); ``support_weight``: the support term's weight in ours (``dsg-train
+    --support-weight``); ``layers``: ours refined and rendered in two layers (``dsg-train --layers``; never
+    without refinement). ``None``: the preset's; ``table.json`` records the values used."""
     from train_world.capture import load_capture
     from train_world.eval.evaluate import evaluate_test_states
     from train_world.single_state.presets import get_preset
@@ -252,6 +266,8 @@ def run_suite(
     py = sys.executable
     if max_gaussians is None:  # baseline (a) gets the two-state cap too: the same field size as each of ours
         max_gaussians = get_preset(preset).dual_max_gaussians
+    schedule = two_state_schedule(preset, iterations, refine_steps)
+    support_weight, layers = ours_options(preset, schedule, support_weight, layers)
     results: dict[str, Any] = {
         "preset": preset,
         "iterations": iterations,
@@ -261,9 +277,9 @@ def run_suite(
         "seed": seed,
         "pseudo_every": pseudo_every,
         "align_downscale": align_downscale,
-        "support_weight": support_weight,
-        "layers": bool(layers),
-        "two_state_schedule": two_state_schedule(preset, iterations, refine_steps),
+        "support_weight": float(support_weight),
+        "layers": layers,
+        "two_state_schedule": schedule,
         "scenes": {},
         "methods": methods,
         "provenance": _provenance(),
@@ -324,8 +340,9 @@ def run_suite(
             "--quiet",
             *([] if pseudo_every is None else ["--pseudo-every", str(pseudo_every)]),
             *([] if align_downscale is None else ["--align-downscale", str(align_downscale)]),
-            *([] if support_weight is None else ["--support-weight", repr(float(support_weight))]),
-            *(["--layers"] if layers else []),
+            "--support-weight",
+            repr(float(support_weight)),
+            "--layers" if layers else "--no-layers",
             "--resume",
             *it,
             *([] if refine_steps is None else ["--refine-steps", str(int(refine_steps))]),

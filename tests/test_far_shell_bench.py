@@ -4,19 +4,15 @@ from __future__ import annotations
 
 import json
 
-from _captures import tiny_capture
+from _captures import tiny_suite_folder
 
 from benchmarks import far_shell
-from dsg_gym.world import load_world, write_world
-from train_world.synth import geom_world as gw
+from dsg_gym.world import load_world
 
 
 def test_far_shell_scores_without_and_with_each_colouring(tmp_path):
     run = tmp_path / "run"
-    tiny_capture(run / "data", test_views=2, test_states=1)
-    world = gw.to_world(gw.build_geom_world("two_blocks", gw.GeomWorldConfig(detail=0.5)))
-    write_world(run / "worlds" / "two_blocks" / "BCP.dsgworld", world)
-    (run / "table.json").write_text(json.dumps({"seed": 0, "scenes": {"two_blocks": {"BCP": {}}}}))
+    world = tiny_suite_folder(run)
     out = tmp_path / "fs.json"
     assert far_shell.main([str(run), "--colours", "render,mean", "--out", str(out)]) == 0
     r = json.loads(out.read_text())

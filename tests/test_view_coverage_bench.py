@@ -8,13 +8,11 @@ import math
 
 import numpy as np
 import pytest
-from _captures import tiny_capture
+from _captures import tiny_suite_folder
 
 from benchmarks import view_coverage as vc
-from dsg_gym.world import write_world
 from train_world.capture import load_capture
 from train_world.eval.regions import region_masks
-from train_world.synth import geom_world as gw
 
 
 def _viewmat(centre) -> np.ndarray:
@@ -63,10 +61,7 @@ def test_bins_pool_the_squared_error():
 
 def test_run_over_a_suite_folder(tmp_path):
     run = tmp_path / "run"
-    tiny_capture(run / "data", test_views=3, test_states=1)
-    world = gw.to_world(gw.build_geom_world("two_blocks", gw.GeomWorldConfig(detail=0.5)))
-    write_world(run / "worlds" / "two_blocks" / "BCP.dsgworld", world)
-    (run / "table.json").write_text(json.dumps({"seed": 0, "scenes": {"two_blocks": {"BCP": {}}}}))
+    world = tiny_suite_folder(run, test_views=3)
     out = tmp_path / "vc.json"
     assert vc.main([str(run), "--out", str(out)]) == 0
     r = json.loads(out.read_text())

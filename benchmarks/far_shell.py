@@ -45,7 +45,7 @@ def score_run(
     """The scores of every world of ``methods`` in one suite folder without the shell and with it, coloured
     each way of ``colours`` (evaluations under ``work``)."""
     from dsg_gym.world import load_world, write_world
-    from train_world.complete.shell import ShellConfig, with_background_shell, without_background_shell
+    from train_world.complete.shell import with_background_shell, without_background_shell
     from train_world.eval.evaluate import evaluate_test_states
 
     table = json.loads((run / "table.json").read_text())

@@ -415,6 +415,8 @@ def test_ours_train_with_the_preset_s_support_term_and_layers_unless_given(tmp_p
     assert ours_options("default", full, 0, False) == (0.0, False)
     assert ours_options("default", two_state_schedule("default", None, 0), None, None) == (0.1, False)
     assert ours_options("quick", two_state_schedule("quick", None), None, None) == (0.0, False)
+    with pytest.raises(ValueError, match="--layers acts in the refinement"):
+        ours_options("default", two_state_schedule("default", None, 0), None, True)
     # a table from before they were recorded (support_weight None, no layers) had neither: it merges with
     # a table that says so, and not with one of the default preset's
     legacy = tmp_path / "legacy.json"

@@ -6,7 +6,8 @@ Pure functions behind the far shell's colours (:mod:`train_world.complete.shell`
   colour over alpha (what the surface shows, whatever its opacity), alpha, and the distance along each ray
   (expected depth).
 - :func:`sample_cube`: those values in any unit directions (nearest pixel of the face the direction leaves by).
-- :func:`equirect_directions`: unit directions of an elevation x azimuth grid (rows from -90 to +90 degrees).
+- :func:`equirect_directions`: unit directions of an elevation x azimuth grid (rows from -90 to +90 degrees);
+  :func:`equirect_cell`: the cell a direction falls in.
 - :func:`seen_by_cameras`: which 3D points project into some camera's image.
 - :func:`continue_columns`: fill the cells of a grid that are not known from the nearest known cell of the
   same column (the same azimuth: up or down a wall), and the cells of columns with none known from the
@@ -29,6 +30,7 @@ from dsg_gym.gaussians import GaussianSet
 __all__ = [
     "continue_columns",
     "cube_viewmats",
+    "equirect_cell",
     "equirect_directions",
     "render_cube",
     "sample_cube",

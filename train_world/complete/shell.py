@@ -155,7 +155,8 @@ def rendered_colours(
     rows, cols = c.grid_rows, 2 * c.grid_rows
     grid = equirect_directions(rows, cols)
     flat = grid.reshape(-1, 3)
-    g_colour, g_alpha, g_dist = (sample_cube(v, flat) for v in (colour, alpha, distance))
+    g = sample_cube(np.concatenate([colour, alpha[..., None], distance[..., None]], axis=-1), flat)
+    g_colour, g_alpha, g_dist = g[:, :3], g[:, 3], g[:, 4]
     known = (g_alpha >= c.known_alpha) & seen_by_cameras(origin + flat * g_dist[:, None], cameras)
     if not known.any():
         return none

@@ -40,10 +40,13 @@ def two_state_schedule(preset: str, iterations: int | None, refine_steps: int | 
 def ours_options(
     preset: str, schedule: list[int], support_weight: float | None, layers: bool | None
 ) -> tuple[float, bool]:
-    """The support weight and the layers ours train with: the given ones or (``None``) the preset's; no layers
-    when ``schedule`` (:func:`two_state_schedule`) has no refinement."""
+    """The support weight and the layers ours train with: the given ones or (``None``) the preset's. The
+    preset's layers are off when ``schedule`` (:func:`two_state_schedule`) has no refinement; asking for layers
+    then is a ``ValueError``, as in ``dsg-train``."""
     from train_world.single_state.presets import get_preset
 
+    if layers and schedule[2] == 0:
+        raise ValueError("--layers acts in the refinement; this run has none: drop --layers or refine")
     p = get_preset(preset)
     weight = p.dual_support_weight if support_weight is None else float(support_weight)
     return weight, (p.dual_layers if layers is None else bool(layers)) and schedule[2] > 0

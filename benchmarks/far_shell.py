@@ -7,8 +7,9 @@ Each ``RUN`` is a ``dsg-suite`` output folder (``table.json``, ``worlds/<scene>/
 added). Per scene and method the world is scored at every test state as it is and with
 :func:`train_world.complete.shell.with_background_shell` (what ``dsg-train`` writes from the same training),
 with ``dsg-eval``'s region split (``error_by_region``): PSNR over all pixels, over the pixels some training view
-saw (``psnr_seen``) and over those none saw (``unseen``). ``--colours render,mean`` scores the shell with each
-way of colouring it (``ShellConfig.colours``; the first is ``with``, each also ``with_<colours>``). Writes
+saw (``psnr_seen``) and over those none saw (``unseen``). ``--shells render,mean,render-sphere`` scores each
+kind of shell: coloured by the world's render or by the mean colour (``ShellConfig.colours``), ``-sphere``
+without the floor (``ShellConfig(floor=False)``); the first is ``with``, each also ``with_<kind>``. Writes
 ``{runs: [{run, seed, scene, method, shell_gaussians, without: {...}, with: {...}, with_render: {...}, ...}],
 summary}`` to ``benchmarks/results/far_shell/<date>-<commit>.json``.
 """
@@ -39,11 +40,17 @@ def _scores(report: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def shell_config(kind: str) -> ShellConfig:
+    """The :class:`ShellConfig` of a ``--shells`` kind: ``render`` or ``mean``, ``-sphere`` for no floor."""
+    colours, sphere = (kind[: -len("-sphere")], True) if kind.endswith("-sphere") else (kind, False)
+    return ShellConfig(colours=colours, floor=not sphere)
+
+
 def score_run(
-    run: Path, methods: list[str], work: Path, colours: tuple[str, ...] = ("render",)
+    run: Path, methods: list[str], work: Path, kinds: tuple[str, ...] = ("render",)
 ) -> list[dict[str, Any]]:
-    """The scores of every world of ``methods`` in one suite folder without the shell and with it, coloured
-    each way of ``colours`` (evaluations under ``work``)."""
+    """The scores of every world of ``methods`` in one suite folder without the shell and with each of
+    ``kinds`` (:func:`shell_config`; evaluations under ``work``)."""
     from dsg_gym.world import load_world, write_world
     from train_world.complete.shell import with_background_shell, without_background_shell
     from train_world.eval.evaluate import evaluate_test_states
@@ -62,8 +69,8 @@ def score_run(
             without = evaluate_test_states(work / f"{name}-without.dsgworld", cap, work / f"{name}-without")
             row = {"run": str(run), "seed": table.get("seed"), "scene": scene, "method": m,
                    "without": _scores(without)}  # fmt: skip
-            for mode in colours:
-                shelled = with_background_shell(plain, ShellConfig(colours=mode))
+            for mode in kinds:
+                shelled = with_background_shell(plain, shell_config(mode))
                 write_world(work / f"{name}-{mode}.dsgworld", shelled)
                 scores = _scores(
                     evaluate_test_states(work / f"{name}-{mode}.dsgworld", cap, work / f"{name}-{mode}")
@@ -84,21 +91,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("runs", type=Path, nargs="+", help="dsg-suite output folders")
     p.add_argument("--methods", default="BCP", help="comma-separated suite methods (default BCP)")
     p.add_argument(
+        "--shells",
         "--colours",
+        dest="shells",
         default="render",
-        help="comma-separated ways of colouring the shell (ShellConfig.colours: render, mean; default render)",
+        help="comma-separated kinds of shell: render or mean (ShellConfig.colours), each with -sphere for no "
+        "floor (default render)",
     )
     p.add_argument(
         "--out", type=Path, help="JSON to write (default: benchmarks/results/far_shell/<date>-<commit>.json)"
     )
     args = p.parse_args(argv)
     methods = [m for m in args.methods.split(",") if m]
-    colours = tuple(c for c in args.colours.split(",") if c)
+    colours = tuple(c for c in args.shells.split(",") if c)
     try:
         if not colours:
-            raise ValueError("--colours names no way of colouring the shell")
+            raise ValueError("--shells names no kind of shell")
         for c in colours:
-            ShellConfig(colours=c)  # a bad name fails here, before any evaluation
+            shell_config(c)  # a bad name fails here, before any evaluation
         with tempfile.TemporaryDirectory() as tmp:
             rows = [r for run in args.runs for r in score_run(run, methods, Path(tmp), colours)]
     except (OSError, ValueError, KeyError) as e:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -214,3 +216,40 @@ def test_render_colours_continue_what_the_cameras_saw_not_what_they_never_saw():
     )
     with pytest.raises(ValueError, match="colours"):
         ShellConfig(colours="nearest")
+
+
+def test_the_floor_continues_where_the_captured_floor_ends_at_its_own_height():
+    # the room's floor is cut away within 0.6 m of the middle, which no training view sees (they look out at
+    # the walls), as a trained world has no floor where no view looked
+    room, cams = _room(), _cameras()
+    r = np.linalg.norm(room.means[:, :2], axis=1)
+    bg = room.subset(np.flatnonzero((room.means[:, 2] > 0) | (r > 0.6)))
+    hole = room.means[(room.means[:, 2] == 0) & (r < 0.5)].astype(np.float64)
+    assert not _projects_inside(hole, cams).any()
+    dome = background_shell(bg, [cams], z_up=True)
+    mean = ShellConfig(colours="mean")  # the geometry is the colours' business of neither
+    sphere = background_shell(bg, [cams], dataclasses.replace(mean, floor=False), z_up=True)
+    assert np.array_equal(background_shell(bg, [cams], mean).means, sphere.means)  # z not known up: no floor
+    assert sphere.means[:, 2].min() < -0.5 and dome.means[:, 2].min() == pytest.approx(0.0, abs=1e-6)
+    on_floor = np.abs(dome.means[:, 2]) < 1e-6
+    normals = quat_to_rotmat(dome.quats.astype(np.float64))[:, :, 2]
+    assert on_floor.sum() > 20 and np.allclose(np.abs(normals[on_floor, 2]), 1.0, atol=1e-6)
+    assert not _projects_inside(dome.means.astype(np.float64), cams).any()
+    # the hole is filled at the floor's height, grey like the floor around it
+    middle = on_floor & (np.linalg.norm(dome.means[:, :2], axis=1) < 0.5)
+    assert middle.sum() > 5
+    assert np.abs(dome.sh[middle, 0] - rgb_to_sh0(np.array(FLOOR_RGB))).max() < 0.1
+    # a camera looking straight down into the hole: black without a shell, the floor's grey with the dome
+    K = np.array([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1.0]])
+    down = look_at((0.0, 0.0, 0.8), (0.0, 0.01, 0.0))
+    assert _render(bg, down, K, 16)[6:10, 6:10].max() < 0.05
+    seen = _render(GaussianSet.concat([bg, dome]), down, K, 16)[6:10, 6:10]
+    assert np.allclose(seen, FLOOR_RGB, atol=0.1)
+    # a world that records its table is z-up: with_background_shell lays the floor
+    world = World(bg, {}, {"state1": np.zeros((0, 4, 4))}, {"state1": cams}, np.zeros((1, 2)), np.zeros(1),
+                  metadata={"table": {"bounds": [[-1, -1, 0], [1, 1, 0]]}})  # fmt: skip
+    shelled = with_background_shell(world, mean)
+    assert np.array_equal(shelled.background.means[bg.num :], dome.means)
+    assert np.array_equal(shelled.background.sh[bg.num :], background_shell(bg, [cams], mean, z_up=True).sh)
+    with pytest.raises(ValueError, match="floor_percentile"):
+        ShellConfig(floor_percentile=101.0)

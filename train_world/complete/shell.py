@@ -21,6 +21,12 @@ each facing the sphere's centre and coloured like the background Gaussians farth
   direction. A shell Gaussian takes its cell's colour, in its direction from that centre, when the surface the
   colour comes from lies at least ``far_enough`` of the shell Gaussian's distance away (a wall, not the table
   seen from above); else the mean colour above. ``colours="mean"`` keeps the mean colour everywhere.
+- A floor (``floor``, worlds whose z is up: those that record their table): the part of the sphere below the
+  background's lowest level (the ``floor_percentile`` of its heights) is flattened onto that level, a disc of
+  Gaussians on a square grid of the sphere's spacing, facing up; so a camera that looks past the captured
+  floor sees the shell where the floor is, not below it. With ``colours="render"`` a floor Gaussian takes the
+  mean colour of the ``neighbours`` known render cells whose surface lies on the floor (within
+  ``floor_tolerance`` of the radius) nearest to it across the floor.
 - Only the unseen part is kept: a shell Gaussian whose centre projects into the image of any of the world's
   cameras is dropped, so the shell stays out of what those views saw. Near the edge of a view, the disc of a
   shell Gaussian just outside it can still show where the surface in front is not quite opaque;
@@ -81,6 +87,9 @@ class ShellConfig:
     grid_rows: int = 360  # elevation rows of the grid the render is continued on (twice as many azimuths)
     known_alpha: float = 0.9  # a render cell with at least this alpha (and seen by a camera) is known
     far_enough: float = 0.5  # a colour's surface must lie this share of the shell Gaussian's distance away
+    floor: bool = True  # z-up worlds: the sphere's part below the background's lowest level lies flat on it
+    floor_percentile: float = 1.0  # that level: this percentile of the background Gaussians' heights
+    floor_tolerance: float = 0.02  # render cells this share of the radius from the floor's height are floor
 
     def __post_init__(self) -> None:
         if self.directions < 1 or self.neighbours < 1:
@@ -97,6 +106,8 @@ class ShellConfig:
             raise ValueError("ShellConfig: panorama and grid_rows must be >= 2")
         if not (0.0 < self.known_alpha <= 1.0 and self.far_enough >= 0.0):
             raise ValueError("ShellConfig: need known_alpha in (0, 1] and far_enough >= 0")
+        if not (0.0 <= self.floor_percentile <= 100.0 and self.floor_tolerance >= 0.0):
+            raise ValueError("ShellConfig: need floor_percentile in [0, 100] and floor_tolerance >= 0")
 
 
 def fibonacci_directions(n: int) -> np.ndarray:
@@ -114,11 +125,12 @@ def _facing(normals: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def _seen(points: np.ndarray, extent: float, cameras: Iterable[Cameras]) -> np.ndarray:
-    """Bool ``[N]``: a disc of radius ``extent`` around the point reaches into some camera's image (the
-    point's projection within the disc's projected radius of the image; behind-the-camera points count where
-    the disc reaches in front)."""
+def _seen(points: np.ndarray, extent: np.ndarray | float, cameras: Iterable[Cameras]) -> np.ndarray:
+    """Bool ``[N]``: a disc of radius ``extent`` (``[N]`` or one for all) around the point reaches into some
+    camera's image (the point's projection within the disc's projected radius of the image; behind-the-camera
+    points count where the disc reaches in front)."""
     seen = np.zeros(len(points), bool)
+    extent = np.broadcast_to(np.asarray(extent, np.float64), (len(points),))
     for cam in cameras:
         for vm, K in zip(cam.viewmats, cam.Ks):
             p = points @ vm[:3, :3].T + vm[:3, 3]
@@ -133,16 +145,40 @@ def _seen(points: np.ndarray, extent: float, cameras: Iterable[Cameras]) -> np.n
     return seen
 
 
+def _dome(
+    centre: np.ndarray, radius: float, n: int, floor_z: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shell Gaussian centres ``[M, 3]``, their unit normals ``[M, 3]`` and whether each lies on the floor,
+    bool ``[M]``: ``n`` Fibonacci points on the sphere, those below ``floor_z`` (None: none) replaced by a
+    square grid of the same spacing on the plane ``z = floor_z`` inside the sphere."""
+    dirs = fibonacci_directions(n)
+    points = centre + radius * dirs
+    if floor_z is None or not floor_z < centre[2]:
+        return points, dirs, np.zeros(n, bool)
+    keep = points[:, 2] > floor_z
+    spacing = radius * np.sqrt(4.0 * np.pi / n)
+    reach = np.sqrt(radius**2 - (centre[2] - floor_z) ** 2)
+    g = np.arange(-np.floor(reach / spacing), np.floor(reach / spacing) + 1) * spacing
+    x, y = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    inside = x**2 + y**2 <= reach**2
+    floor = np.stack([centre[0] + x[inside], centre[1] + y[inside], np.full(inside.sum(), floor_z)], 1)
+    up = np.tile([0.0, 0.0, 1.0], (len(floor), 1))
+    on_floor = np.concatenate([np.zeros(keep.sum(), bool), np.ones(len(floor), bool)])
+    return np.concatenate([points[keep], floor]), np.concatenate([dirs[keep], up]), on_floor
+
+
 def rendered_colours(
     background: GaussianSet,
     cameras: list[Cameras],
     points: np.ndarray,
     config: ShellConfig,
     splat_options: dict | None = None,
+    floor: tuple[np.ndarray, float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The ``colours="render"`` colour (module docstring) of shell Gaussians at ``points [N, 3]``: RGB
     ``[N, 3]`` in [0, 1] and whether each has one, bool ``[N]`` (none without cameras or without a known
-    cell)."""
+    cell). ``floor``: ``(on_floor [N] bool, height, tolerance)``; the points on the floor take the mean colour
+    of the nearest known cells whose surface lies within ``tolerance`` of that height, when there are any."""
     c = config
     none = np.zeros((len(points), 3)), np.zeros(len(points), bool)
     if not cameras:
@@ -157,7 +193,8 @@ def rendered_colours(
     flat = grid.reshape(-1, 3)
     g = sample_cube(np.concatenate([colour, alpha[..., None], distance[..., None]], axis=-1), flat)
     g_colour, g_alpha, g_dist = g[:, :3], g[:, 3], g[:, 4]
-    known = (g_alpha >= c.known_alpha) & seen_by_cameras(origin + flat * g_dist[:, None], cameras)
+    surface = origin + flat * g_dist[:, None]
+    known = (g_alpha >= c.known_alpha) & seen_by_cameras(surface, cameras)
     if not known.any():
         return none
     src = continue_columns(known.reshape(rows, cols), grid).reshape(-1)
@@ -165,7 +202,17 @@ def rendered_colours(
     reach = np.linalg.norm(offset, axis=1)
     r, k = equirect_cell(offset / np.maximum(reach, 1e-12)[:, None], rows, cols)
     s = src[r * cols + k]
-    return np.clip(g_colour[s], 0.0, 1.0), g_dist[s] >= c.far_enough * reach
+    rgb, ok = np.clip(g_colour[s], 0.0, 1.0), g_dist[s] >= c.far_enough * reach
+    if floor is not None:
+        on_floor, floor_z, tol = floor
+        at = np.flatnonzero(known & (np.abs(surface[:, 2] - floor_z) <= tol))
+        if len(at) and np.any(on_floor):
+            k_near = min(c.neighbours, len(at))
+            _, nn = cKDTree(surface[at, :2]).query(np.asarray(points, np.float64)[on_floor, :2], k=k_near)
+            nn = np.asarray(nn).reshape(int(np.sum(on_floor)), k_near)
+            rgb[on_floor] = np.clip(g_colour[at[nn]].mean(axis=1), 0.0, 1.0)
+            ok[on_floor] = True
+    return rgb, ok
 
 
 def background_shell(
@@ -173,11 +220,12 @@ def background_shell(
     cameras: Iterable[Cameras],
     config: ShellConfig | None = None,
     splat_options: dict | None = None,
+    z_up: bool = False,
 ) -> GaussianSet:
     """The shell Gaussians (module docstring) for ``background`` seen by ``cameras``, labelled background (0)
     with ``background``'s SH width and features. Empty when the background has fewer Gaussians than
     ``config.neighbours`` at ``config.min_opacity``. ``splat_options``: the world's (``World.splat_options``),
-    for the render of ``colours="render"``."""
+    for the render of ``colours="render"``. ``z_up``: the world's +z is up (it has a floor, ``config.floor``)."""
     c = config or ShellConfig()
     cameras = list(cameras)
     keep = np.flatnonzero(background.opacities >= c.min_opacity)
@@ -189,7 +237,11 @@ def background_shell(
     offset = means - centre
     dist = np.linalg.norm(offset, axis=1)
     unit = offset / np.maximum(dist, 1e-12)[:, None]
-    dirs = fibonacci_directions(c.directions)
+    radius = c.margin * float(np.percentile(dist, c.radius_percentile))
+    floor_z = float(np.percentile(means[:, 2], c.floor_percentile)) if c.floor and z_up else None
+    centres, normals, on_floor = _dome(centre, radius, c.directions, floor_z)
+    dirs = centres - centre
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1), 1e-12)[:, None]
     _, idx = cKDTree(unit).query(dirs, k=c.neighbours)
     idx = idx.reshape(len(dirs), c.neighbours)
     d = dist[idx]
@@ -197,19 +249,18 @@ def background_shell(
     w /= w.sum(axis=1, keepdims=True)
     colour = np.einsum("nk,nkc->nc", w, background.sh[keep][idx, 0].astype(np.float64))
     features = np.einsum("nk,nkf->nf", w, background.features[keep][idx].astype(np.float64))
-    radius = c.margin * float(np.percentile(dist, c.radius_percentile))
-    centres = centre + radius * dirs
     across = c.spread * radius * np.sqrt(4.0 * np.pi / c.directions)
     sh = np.zeros((len(dirs), k_sh, 3))
     sh[:, 0] = colour
     unseen = ~_seen(centres, c.cull_sigmas * across, cameras)
     if c.colours == "render" and unseen.any():
-        rgb, ok = rendered_colours(background, cameras, centres[unseen], c, splat_options)
+        fl = None if floor_z is None else (on_floor[unseen], floor_z, c.floor_tolerance * radius)
+        rgb, ok = rendered_colours(background, cameras, centres[unseen], c, splat_options, fl)
         at = np.flatnonzero(unseen)[ok]
         sh[at, 0] = rgb_to_sh0(rgb[ok])
     shell = GaussianSet(
         means=centres,
-        quats=_facing(dirs),
+        quats=_facing(normals),
         scales=np.tile([across, across, c.thickness * across], (len(dirs), 1)),
         opacities=np.full(len(dirs), c.opacity),
         sh=sh,
@@ -225,7 +276,9 @@ def with_background_shell(world: World, config: ShellConfig | None = None) -> Wo
     recorded) counting them. A world that has a shell already is returned as it is."""
     if "background_shell" in world.metadata:
         return world
-    shell = background_shell(world.background, world.cameras.values(), config, world.splat_options)
+    shell = background_shell(
+        world.background, world.cameras.values(), config, world.splat_options, z_up="table" in world.metadata
+    )
     meta = {**world.metadata, "background_shell": {"gaussians": int(shell.num)}}
     if "num_gaussians" in meta:
         meta["num_gaussians"] = int(meta["num_gaussians"]) + int(shell.num)

@@ -153,7 +153,7 @@ def _dome(
     square grid of the same spacing on the plane ``z = floor_z`` inside the sphere."""
     dirs = fibonacci_directions(n)
     points = centre + radius * dirs
-    if floor_z is None or not floor_z < centre[2]:
+    if floor_z is None or not centre[2] - radius < floor_z < centre[2]:
         return points, dirs, np.zeros(n, bool)
     keep = points[:, 2] > floor_z
     spacing = radius * np.sqrt(4.0 * np.pi / n)

@@ -72,7 +72,7 @@ __all__ = [
 class ShellConfig:
     """Thresholds of :func:`background_shell`."""
 
-    directions: int = 4000  # shell Gaussians before the seen ones are dropped
+    directions: int = 4000  # points on the sphere before the seen ones are dropped (the floor: fewer)
     neighbours: int = 16  # background Gaussians that colour one shell Gaussian
     far_fraction: float = 0.9  # of those, the ones at least this share of the farthest one's distance
     radius_percentile: float = 99.5  # the shell radius: this percentile of the background's distances ...
@@ -125,12 +125,11 @@ def _facing(normals: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def _seen(points: np.ndarray, extent: np.ndarray | float, cameras: Iterable[Cameras]) -> np.ndarray:
-    """Bool ``[N]``: a disc of radius ``extent`` (``[N]`` or one for all) around the point reaches into some
-    camera's image (the point's projection within the disc's projected radius of the image; behind-the-camera
-    points count where the disc reaches in front)."""
+def _seen(points: np.ndarray, extent: float, cameras: Iterable[Cameras]) -> np.ndarray:
+    """Bool ``[N]``: a disc of radius ``extent`` around the point reaches into some camera's image (the
+    point's projection within the disc's projected radius of the image; behind-the-camera points count where
+    the disc reaches in front)."""
     seen = np.zeros(len(points), bool)
-    extent = np.broadcast_to(np.asarray(extent, np.float64), (len(points),))
     for cam in cameras:
         for vm, K in zip(cam.viewmats, cam.Ks):
             p = points @ vm[:3, :3].T + vm[:3, 3]
@@ -271,9 +270,10 @@ def background_shell(
 
 
 def with_background_shell(world: World, config: ShellConfig | None = None) -> World:
-    """``world`` with :func:`background_shell` (against its own cameras) appended to its background,
-    ``metadata["background_shell"]``: ``{"gaussians": n}`` and ``metadata["num_gaussians"]`` (where
-    recorded) counting them. A world that has a shell already is returned as it is."""
+    """``world`` with :func:`background_shell` (against its own cameras; z up, so with a floor, when the world
+    records its table) appended to its background, ``metadata["background_shell"]``: ``{"gaussians": n}`` and
+    ``metadata["num_gaussians"]`` (where recorded) counting them. A world that has a shell already is returned
+    as it is."""
     if "background_shell" in world.metadata:
         return world
     shell = background_shell(

@@ -79,6 +79,15 @@ def _parser() -> argparse.ArgumentParser:
         "auto-exposure varies (default 0)",
     )
     p.add_argument(
+        "--photo-scale",
+        type=int,
+        default=1,
+        metavar="S",
+        help="with --as-photos: photos S times as wide and high as the ground truth (the same views, "
+        "--supersample // S samples per photo pixel), as a phone's photos are larger than the size a world "
+        "trains at; train on them with dsg-train --downscale S (default 1)",
+    )
+    p.add_argument(
         "--marker",
         type=float,
         default=0.0,
@@ -105,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.scene or args.out is None:
         _parser().error("--scene and --out are required (or use --list)")
-    if (args.photo_noise or args.photo_exposure) and not args.as_photos:
-        _parser().error("--photo-noise and --photo-exposure need --as-photos")
+    if (args.photo_noise or args.photo_exposure or args.photo_scale != 1) and not args.as_photos:
+        _parser().error("--photo-noise, --photo-exposure and --photo-scale need --as-photos")
+    if not 1 <= args.photo_scale <= 16:
+        _parser().error(f"--photo-scale must be an integer in 1..16, got {args.photo_scale}")
     if not 0 <= args.photo_exposure < 1:
         _parser().error(f"--photo-exposure must be in [0, 1), got {args.photo_exposure}")
     from train_world.synth.generate import GenerateConfig, generate_scene  # imports MuJoCo
@@ -141,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
                     overwrite=args.overwrite,
                     noise=args.photo_noise,
                     exposure=args.photo_exposure,
+                    scale=args.photo_scale,
                 )
             else:
                 generate_scene(spec, out, cfg, overwrite=args.overwrite)

@@ -10,13 +10,20 @@
 
 The photo folder is what ``dsg-capture`` reads (:mod:`train_world.capture.photos`); ``ground_truth/`` is what
 its estimates are measured against. Everything is deterministic for a given seed.
+
+Photos may be larger than the ground truth (``scale``), as a phone's photos are larger than the size a world
+trains at: the same states and camera poses are rendered ``scale`` times as wide and high, with
+``supersample // scale`` samples per photo pixel along each axis (at least one), so that a photo downscaled by
+``scale`` (``dsg-train --downscale``) integrates over the same sensor area as a ground-truth pixel.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
+import shutil
 import zlib
 from pathlib import Path
 
@@ -107,16 +114,55 @@ def generate_photo_capture(
     quality: int = 92,
     noise: float = 0.0,
     exposure: float = 0.0,
+    scale: int = 1,
 ) -> Path:
     """Render ``scene`` into ``out/ground_truth`` and write its photo capture beside it, atomically (the
-    whole of ``out`` appears only when complete)."""
+    whole of ``out`` appears only when complete). ``scale``: the photos' size over the ground truth's (an
+    integer >= 1; see the module docstring)."""
     if isinstance(scene, str):
         scene = resolve_scene(scene)
     cfg = GenerateConfig() if config is None else config
+    if not (isinstance(scale, int) and not isinstance(scale, bool) and 1 <= scale <= 16):
+        raise ValueError(f"the photos' scale must be an integer in 1..16, got {scale!r}")
     out = Path(out)
     with staged_directory(out, overwrite=overwrite) as stage:
         generate_scene(scene, stage / "ground_truth", cfg)
+        source = stage / "ground_truth"
+        if scale > 1:
+            source = stage / ".photo_source"
+            big = dataclasses.replace(
+                cfg,
+                width=cfg.width * scale,
+                height=cfg.height * scale,
+                supersample=max(1, cfg.supersample // scale),
+            )
+            generate_scene(scene, source, big)
+            _check_same_views(stage / "ground_truth", source, scale)
         write_photos_from_capture(
-            stage / "ground_truth", stage, quality=quality, noise=noise, exposure=exposure, seed=cfg.seed
+            source, stage, quality=quality, noise=noise, exposure=exposure, seed=cfg.seed
         )
+        if scale > 1:
+            shutil.rmtree(source)
     return out
+
+
+def _check_same_views(truth: Path, photos: Path, scale: int) -> None:
+    """The larger render must show the ground truth's states from its cameras: the same object poses and
+    camera poses, intrinsics ``scale`` times the ground truth's. Raises ``RuntimeError`` otherwise."""
+    a = json.loads((truth / "scene.json").read_text(encoding="utf-8"))
+    b = json.loads((photos / "scene.json").read_text(encoding="utf-8"))
+    for state in PHOTO_STATES:
+        ta = json.loads((truth / state / "transforms.json").read_text(encoding="utf-8"))
+        tb = json.loads((photos / state / "transforms.json").read_text(encoding="utf-8"))
+        same = len(ta["frames"]) == len(tb["frames"]) and all(
+            fa["file_path"] == fb["file_path"]
+            and np.allclose(fa["transform_matrix"], fb["transform_matrix"], atol=1e-12)
+            for fa, fb in zip(ta["frames"], tb["frames"])
+        )
+        same = same and all(
+            np.isclose(float(tb[k]), scale * float(ta[k]), rtol=1e-9) for k in ("fl_x", "fl_y", "cx", "cy")
+        )
+        if not same:
+            raise RuntimeError(f"photos at {scale}x do not show {state} from the ground truth's cameras")
+    if any(a["states"][state] != b["states"][state] for state in PHOTO_STATES):
+        raise RuntimeError(f"photos at {scale}x do not show the ground truth's object poses")

@@ -103,14 +103,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = p.parse_args(argv)
     methods = [m for m in args.methods.split(",") if m]
-    colours = tuple(c for c in args.shells.split(",") if c)
+    kinds = tuple(c for c in args.shells.split(",") if c)
     try:
-        if not colours:
+        if not kinds:
             raise ValueError("--shells names no kind of shell")
-        for c in colours:
+        for c in kinds:
             shell_config(c)  # a bad name fails here, before any evaluation
         with tempfile.TemporaryDirectory() as tmp:
-            rows = [r for run in args.runs for r in score_run(run, methods, Path(tmp), colours)]
+            rows = [r for run in args.runs for r in score_run(run, methods, Path(tmp), kinds)]
     except (OSError, ValueError, KeyError) as e:
         print(f"far_shell: error: {e}", file=sys.stderr)
         return 2
@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         "mean_gain_db": sum(gains) / len(gains),
         "min_gain_db": min(gains),
         "worst_seen_change_db": min(seen_changes, default=None),
-        **{f"mean_psnr_with_{c}": sum(r[f"with_{c}"]["psnr"] for r in rows) / len(rows) for c in colours},
+        **{f"mean_psnr_with_{c}": sum(r[f"with_{c}"]["psnr"] for r in rows) / len(rows) for c in kinds},
     }  # fmt: skip
     out = args.out or default_out("far_shell")
     write_result(out, {"runs": rows, "summary": summary})

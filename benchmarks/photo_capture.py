@@ -1,14 +1,16 @@
 """``dsg-capture`` against the ground truth, scene by scene: camera poses, table frame, metric scale and object
 motions from photos alone, without training a world.
 
-``python -m benchmarks.photo_capture [--scenes all] [--seed 0] [--marker 0.1] [--photo-noise S] [--work DIR]
-[--true-cameras] [--out FILE]``
+``python -m benchmarks.photo_capture [--scenes all] [--seed 0] [--marker 0.1] [--photo-noise S]
+[--photo-scale S] [--work DIR] [--true-cameras] [--out FILE]``
 
 Per scene: ``dsg-synth --scene S --as-photos [--marker M]`` writes JPEG photos, masks and the true capture
 (``ground_truth/``); ``dsg-capture --depth none`` estimates the capture from the photos (timed, with its peak
 RSS; no depth maps, which only training's start needs); and
 :func:`train_world.capture.compare.compare_captures` scores it against the truth after a similarity fit of the
 camera centres. Metric scale is scored by that similarity's scale (1 when the marker's scale is exact).
+``--photo-scale S`` makes the photos S times the ground truth's size (``dsg-synth --photo-scale``); the capture
+is scored at the ground truth's size (its intrinsics divided by S), so the focal error stays comparable.
 ``--true-cameras`` builds each capture a second time with the truth's cameras in place of the estimated ones
 (:func:`train_world.capture.compare.with_true_cameras`; structure from motion still runs, for its points) and
 scores its motions too: what the motion step misses by itself, apart from what the cameras' errors cost it.
@@ -78,7 +80,13 @@ def _with_true_cameras(photos: Path, out: Path, marker: float | None) -> dict[st
 
 
 def scene(
-    name: str, work: Path, seed: int, marker: float | None, synth_args: list[str], true_cameras: bool = False
+    name: str,
+    work: Path,
+    seed: int,
+    marker: float | None,
+    synth_args: list[str],
+    true_cameras: bool = False,
+    photo_scale: int = 1,
 ) -> dict[str, Any]:
     """Photos, capture and scores of one scene under ``work/name``."""
     from train_world.capture import load_capture
@@ -89,7 +97,8 @@ def scene(
     photos, est = d / "photos", d / "est"
     mk = ["--marker", str(marker)] if marker else []
     _run([*SYNTH, "--scene", name, "--as-photos", "--seed", str(seed), "--out", str(photos), "--overwrite",
-          "--quiet", *mk, *synth_args], d / "synth.log")  # fmt: skip
+          "--quiet", *mk, *synth_args, *(["--photo-scale", str(photo_scale)] if photo_scale > 1 else [])],
+         d / "synth.log")  # fmt: skip
     wall, rss = _run(
         [*CAPTURE, str(photos), "--out", str(est), "--overwrite", "--quiet", "--depth", "none",
          *(["--marker-size", str(marker)] if marker else [])],
@@ -97,7 +106,8 @@ def scene(
     )  # fmt: skip
     report = json.loads((est / "report.json").read_text())
     c = compare_captures(
-        load_capture(est, load_masks=False), load_capture(photos / "ground_truth", load_masks=False)
+        load_capture(est, load_masks=False, downscale=photo_scale),
+        load_capture(photos / "ground_truth", load_masks=False),
     )
     methods = {o["name"]: o.get("method") for o in report.get("objects", [])}
     motions = _motions(c)
@@ -174,18 +184,18 @@ def summarise(scenes: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], dict[s
 
 
 def run(out: Path, scenes: list[str], work: Path | None, seed: int, marker: float | None,
-        synth_args: list[str], true_cameras: bool = False) -> dict[str, Any]:  # fmt: skip
+        synth_args: list[str], true_cameras: bool = False, photo_scale: int = 1) -> dict[str, Any]:  # fmt: skip
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(work) if work is not None else Path(tmp)
         for s in scenes:
-            results[s] = scene(s, root, seed, marker, synth_args, true_cameras)
+            results[s] = scene(s, root, seed, marker, synth_args, true_cameras, photo_scale)
             print(s, json.dumps(results[s]), flush=True)
     summary, met = summarise(results)
     result = {
         "benchmark": "photo_capture",
         "config": {"scenes": scenes, "seed": seed, "marker_m": marker, "synth_args": synth_args,
-                   "true_cameras": true_cameras, "cpus": os.cpu_count()},
+                   "true_cameras": true_cameras, "photo_scale": photo_scale, "cpus": os.cpu_count()},
         "scenes": results,
         "summary": summary,
         "targets": TARGETS,
@@ -214,8 +224,19 @@ def main(argv: list[str] | None = None) -> int:
         help="also build each capture on the truth's cameras and score its motions (what the motion step "
         "misses by itself)",
     )
+    p.add_argument(
+        "--photo-scale",
+        type=int,
+        default=1,
+        metavar="S",
+        help="dsg-synth --photo-scale S: photos S times the ground truth's size (default 1)",
+    )
     args = p.parse_args(argv)
     scenes = checked_scene_args(p, args)
+    if not 1 <= args.photo_scale <= 16:
+        p.error(f"--photo-scale must be an integer in 1..16, got {args.photo_scale}")
+    if args.photo_scale > 1 and args.true_cameras:
+        p.error("--true-cameras needs photos at the ground truth's size (--photo-scale 1)")
     synth = (["--views", str(args.views)] if args.views else []) + (
         ["--photo-noise", str(args.photo_noise)] if args.photo_noise else []
     )
@@ -227,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
         args.marker or None,
         synth,
         args.true_cameras,
+        args.photo_scale,
     )
     print(json.dumps({"summary": result["summary"], "met": result["met"]}, indent=1))
     return 0

@@ -5,13 +5,16 @@
 
 Per scene, each step a fresh process, in ``--work`` (kept) or a temporary folder:
 
-1. ``dsg-synth --scene S --as-photos [--marker M]``: photos, and the true capture under ``ground_truth/``;
+1. ``dsg-synth --scene S --as-photos [--marker M] [--photo-scale S]``: photos, and the true capture under
+   ``ground_truth/``; with ``--photo-scale S`` the photos are S times its size, as a phone's are larger than
+   the size a world trains at;
 2. ``dsg-capture photos --out est [--marker-size M] [--depth D]``: camera poses, table frame, object motions
    and depth maps (``--depth``: dsg-capture's default, a first reconstruction of each state) from the images
    alone (timed);
 3. ``dsg-train est --holdout-every 0``: the world from the photos, every photo training as every true view
    trains the reference (timed, with its peak RSS); with ``--refine-cameras`` its cameras are refined in
-   training;
+   training; with ``--photo-scale S`` it trains at the ground truth's size (``--downscale S``) and the
+   capture's depth fit at half that (``--fit-downscale 2S``);
 4. ``dsg-train photos/ground_truth``: the reference, the same training on the true cameras and poses;
 5. ``dsg-eval --align-views 60`` of both worlds at the ground truth's test states (the photo world with
    ``--align-frames``): each test camera aligned to the world it scores before scoring, as pose-free
@@ -249,6 +252,20 @@ def checked_scene_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> 
     return scenes
 
 
+def photo_path_args(args: argparse.Namespace) -> tuple[list[str], list[str], list[str]]:
+    """What the photo path adds to ``dsg-synth``, ``dsg-capture`` and the photo world's ``dsg-train`` for
+    ``--photo-scale``, ``--depth``, ``--depth-weight`` and ``--refine-cameras``."""
+    scale = int(args.photo_scale)
+    synth = ["--photo-scale", str(scale)] if scale > 1 else []
+    cap = ["--depth", args.depth] if args.depth else []
+    if scale > 1 and args.depth in (None, "fit"):
+        cap += ["--fit-downscale", str(2 * scale)]
+    train = ["--downscale", str(scale)] if scale > 1 else []
+    train += ["--depth-weight", str(args.depth_weight)] if args.depth_weight is not None else []
+    train += ["--refine-cameras"] if args.refine_cameras else []
+    return synth, cap, train
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m benchmarks.photo_worlds",
@@ -289,6 +306,15 @@ def main(argv: list[str] | None = None) -> int:
         help="dsg-train --depth-weight W for the photo world (on its capture's depth maps)",
     )
     p.add_argument(
+        "--photo-scale",
+        type=int,
+        default=1,
+        metavar="S",
+        help="dsg-synth --photo-scale S: photos S times the ground truth's size, as a phone's are larger than "
+        "the size a world trains at; the photo world trains at the ground truth's size (dsg-train --downscale "
+        "S) and dsg-capture's depth fit at half of it (--fit-downscale 2S) (default 1)",
+    )
+    p.add_argument(
         "--refine-cameras",
         action="store_true",
         help="dsg-train --refine-cameras for the photo world (its cameras refined in training)",
@@ -300,9 +326,10 @@ def main(argv: list[str] | None = None) -> int:
     train += ["--iterations", str(args.iterations)] if args.iterations else []
     out = args.out or default_out("photo_worlds")
     ev = ["--align-views", str(args.align_views)] if args.align_views else []
-    cap = ["--depth", args.depth] if args.depth else []
-    photo_train = ["--depth-weight", str(args.depth_weight)] if args.depth_weight is not None else []
-    photo_train += ["--refine-cameras"] if args.refine_cameras else []
+    if not 1 <= args.photo_scale <= 16:
+        p.error(f"--photo-scale must be an integer in 1..16, got {args.photo_scale}")
+    photo_synth, cap, photo_train = photo_path_args(args)
+    synth += photo_synth
     r = run(out, scenes, args.work, synth, train, args.marker or None, ev, cap, photo_train)
     print(json.dumps(r["summary"]))
     return 0

@@ -93,3 +93,25 @@ def test_photo_worlds_refuses_unknown_depth_sources(tmp_path, capsys):
         main(["--out", str(tmp_path / "x.json"), "--scenes", "two_blocks", "--depth", "lidar"])
     assert e.value.code == 2 and "invalid choice: 'lidar'" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
+
+
+def test_photo_scale_trains_the_photo_world_at_the_ground_truths_size(tmp_path, capsys):
+    import argparse
+
+    from benchmarks.photo_worlds import photo_path_args
+
+    def ns(**kw):
+        base = {"photo_scale": 1, "depth": None, "depth_weight": None, "refine_cameras": False}
+        return argparse.Namespace(**{**base, **kw})
+
+    assert photo_path_args(ns()) == ([], [], [])
+    synth, cap, train = photo_path_args(ns(photo_scale=2))
+    assert (
+        synth == ["--photo-scale", "2"] and cap == ["--fit-downscale", "4"] and train == ["--downscale", "2"]
+    )
+    synth, cap, train = photo_path_args(ns(photo_scale=3, depth="none", refine_cameras=True))
+    assert cap == ["--depth", "none"] and train == ["--downscale", "3", "--refine-cameras"]
+    with pytest.raises(SystemExit) as e:
+        main(["--out", str(tmp_path / "x.json"), "--scenes", "two_blocks", "--photo-scale", "0"])
+    assert e.value.code == 2 and "--photo-scale" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from train_world.cli import synth as synth_cli
-from train_world.synth.photos import degrade_photo
+from train_world.synth.photos import degrade_photo, generate_photo_capture
 
 
 def _img():
@@ -42,3 +42,46 @@ def test_photo_options_need_as_photos(tmp_path, capsys):
         )
     assert "[0, 1)" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_photo_scale_needs_as_photos_and_a_sane_factor(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        synth_cli.main(["--scene", "two_blocks", "--out", str(tmp_path / "x"), "--photo-scale", "2"])
+    assert "--as-photos" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        synth_cli.main(
+            ["--scene", "two_blocks", "--out", str(tmp_path / "x"), "--as-photos", "--photo-scale", "0"]
+        )
+    assert "--photo-scale" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="scale"):
+        generate_photo_capture("two_blocks", tmp_path / "x", scale=2.5)
+    assert not (tmp_path / "x").exists()
+
+
+def test_larger_photos_show_the_ground_truths_views(tmp_path):
+    """Photos at 2x are the same views as the ground truth: box-averaged back to its size they match it to
+    within JPEG's error, the masks are the ground truth's ids at twice the size, and the ground truth is the
+    one a 1x photo capture of the same seed gets."""
+    from PIL import Image
+
+    from train_world.synth.generate import GenerateConfig
+
+    cfg = GenerateConfig(width=24, height=20, views=3, test_views=1, test_states=1, progress=False)
+    one = generate_photo_capture("two_blocks", tmp_path / "one", cfg)
+    two = generate_photo_capture("two_blocks", tmp_path / "two", cfg, scale=2)
+    assert not (two / ".photo_source").exists()
+    for rel in ("scene.json", "state1/transforms.json", "state2/images/0002.png", "test_0/masks/0000.png"):
+        assert (one / "ground_truth" / rel).read_bytes() == (two / "ground_truth" / rel).read_bytes()
+    for state in ("state1", "state2"):
+        for i in range(3):
+            truth = np.asarray(
+                Image.open(two / "ground_truth" / state / "images" / f"{i:04d}.png").convert("RGB")
+            )
+            photo = np.asarray(Image.open(two / state / "images" / f"{i:04d}.jpg"))
+            assert photo.shape == (40, 48, 3)
+            down = photo.astype(float).reshape(20, 2, 24, 2, 3).mean(axis=(1, 3))
+            assert np.abs(down - truth).mean() < 3.0  # a different view would be off by tens of levels
+            ids = np.asarray(Image.open(two / state / "masks" / f"{i:04d}.png"))
+            truth_ids = np.asarray(Image.open(two / "ground_truth" / state / "masks" / f"{i:04d}.png"))
+            assert ids.shape == (40, 48) and set(np.unique(ids)) == set(np.unique(truth_ids))
+            assert (ids[::2, ::2] == truth_ids).mean() > 0.9

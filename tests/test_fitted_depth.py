@@ -194,6 +194,7 @@ def test_bad_depth_options_are_refused(tmp_path, capsys):
         (["--depth", "none", "--fit-downscale", "2"], "--fit-downscale is for --depth fit, not --depth none"),
         (["--fit-downscale", "0"], "--fit-downscale must be an integer >= 1"),
         (["--depth", "lidar"], "invalid choice: 'lidar'"),
+        (["--max-size", "8"], "--max-size must be at least 16 pixels"),
     ):
         with pytest.raises(SystemExit) as e:
             capture_cli.main([str(tmp_path), "--out", str(tmp_path / "out"), *extra])
@@ -204,4 +205,6 @@ def test_bad_depth_options_are_refused(tmp_path, capsys):
 
     with pytest.raises(ValueError, match="one source of depth maps"):
         build_capture(tmp_path, tmp_path / "out", stereo=True, depth_fit=DepthFit())
+    with pytest.raises(ValueError, match="at least 16 pixels"):
+        build_capture(tmp_path, tmp_path / "out", max_size=8)
     assert not (tmp_path / "out").exists()

@@ -439,3 +439,29 @@ def test_training_on_stereo_depth_starts_in_proportion_to_it(stereo):
     n = get_preset("quick").num_init_points
     assert len(means) == n_sparse + min(round(cover * n), n - n_sparse)
     assert (np.abs(means[n_sparse:, 2]) < 0.01).mean() > 0.2  # much of it on the table top, z = 0
+
+
+def test_max_size_shrinks_the_views_but_not_the_estimates(photos, estimated, tmp_path):
+    """``max_size`` writes the views at half size (images area-averaged, masks nearest, intrinsics halved)
+    while the cameras, frame and motions, estimated on the whole photos, are the full-size capture's."""
+    full, full_report = estimated
+    out = tmp_path / "small"
+    report = build_capture(photos, out, progress=False, max_size=64)
+    assert report["capture_size"] == [64, 64] and full_report["capture_size"] == [128, 128]
+    assert (out / "scene.json").read_bytes() == (full / "scene.json").read_bytes()
+    assert report["objects"] == full_report["objects"] and report["cameras"] == full_report["cameras"]
+    for s in ("state1", "state2"):
+        a = json.loads((full / s / "transforms.json").read_text())
+        b = json.loads((out / s / "transforms.json").read_text())
+        assert (b["w"], b["h"]) == (64, 64)
+        for k in ("fl_x", "fl_y", "cx", "cy"):
+            assert b[k] == pytest.approx(a[k] / 2, rel=1e-12)
+        assert [f["transform_matrix"] for f in b["frames"]] == [f["transform_matrix"] for f in a["frames"]]
+        fr = b["frames"][0]
+        big = np.asarray(Image.open(full / s / fr["file_path"]), dtype=np.float64)
+        small = np.asarray(Image.open(out / s / fr["file_path"]), dtype=np.float64)
+        err = np.abs(small - big.reshape(64, 2, 64, 2, 3).mean(axis=(1, 3)))
+        assert err.max() <= 0.5  # the 2x2 means, rounded to 8 bits
+        ids = np.asarray(Image.open(out / s / fr["mask_path"]))
+        assert ids.shape == (64, 64)
+        np.testing.assert_array_equal(ids, np.asarray(Image.open(full / s / fr["mask_path"]))[1::2, 1::2])

@@ -40,6 +40,21 @@ def _open_image(path: Path, what: str) -> Image.Image:
     return img
 
 
+def area_resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` ``[H,W,C]`` (any numeric dtype) resized to ``size`` ``(width, height)`` by area averaging, as
+    float32 ``[height,width,C]``: each output pixel is the mean of the input pixels it covers (exactly the
+    ``k x k`` block means for an integer factor ``k``). Computed in floating point, so nothing is rounded: an
+    8-bit resize in Pillow rounds every mean up by about half a level."""
+    a = np.asarray(image, dtype=np.float32)
+    if (a.shape[1], a.shape[0]) == tuple(size):
+        return a.copy()
+    planes = [
+        Image.fromarray(np.ascontiguousarray(a[..., c])).resize(size, Image.Resampling.BOX)
+        for c in range(a.shape[2])
+    ]
+    return np.stack([np.asarray(q, dtype=np.float32) for q in planes], axis=-1)
+
+
 def read_rgb(path: Path, background: Sequence[float], downscale: int) -> tuple[np.ndarray, tuple[int, int]]:
     """RGB float32 [H,W,3] (downscaled) and the original (width, height)."""
     img = _open_image(path, "image")
@@ -48,9 +63,10 @@ def read_rgb(path: Path, background: Sequence[float], downscale: int) -> tuple[n
         raise CaptureError(f"{path}: image has mode {img.mode}; expected an 8-bit RGB(A) or grey image")
     has_alpha = img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info)
     img = img.convert("RGBA" if has_alpha else "RGB")
+    a = np.asarray(img, dtype=np.float32)
     if downscale > 1:
-        img = img.resize((img.width // downscale, img.height // downscale), Image.Resampling.BOX)
-    a = np.asarray(img, dtype=np.float32) / 255.0
+        a = area_resize(a, (img.width // downscale, img.height // downscale))
+    a = a / 255.0
     if has_alpha:
         alpha = a[..., 3:4]
         a = a[..., :3] * alpha + np.asarray(background, dtype=np.float32)[:3] * (1.0 - alpha)

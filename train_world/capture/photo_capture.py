@@ -6,8 +6,8 @@
 
     OUT/scene.json                 objects, table bounds, units, per-state object poses, relative_transforms
     OUT/<state>/transforms.json    pinhole intrinsics + registered frames (OpenGL camera-to-world)
-    OUT/<state>/images/<stem>.png  undistorted photos
-    OUT/<state>/masks/<stem>.png   undistorted object-id masks
+    OUT/<state>/images/<stem>.png  undistorted photos (with ``max_size``: shrunk, area-averaged)
+    OUT/<state>/masks/<stem>.png   undistorted object-id masks (likewise, nearest pixel)
     OUT/<state>/depth/<stem>.png   with ``stereo``: depth from multi-view stereo (uint16, 0 = none; :mod:`.mvs`);
                                    with ``depth_fit``: depth of a first reconstruction (:mod:`.fitted_depth`)
     OUT/points3d.ply               the background's structure-from-motion points (table frame, coloured)
@@ -66,6 +66,7 @@ from train_world.capture.photos import (
 )
 from train_world.capture.points import POINTS_FILE, point_colours, write_points_ply
 from train_world.capture.sfm import SfmResult, quiet_colmap, run_sfm, silenced_stderr
+from train_world.capture.shrink import shrink_capture
 from train_world.capture.silhouettes import object_centre
 from train_world.capture.undistort import Undistorter
 
@@ -78,6 +79,8 @@ SILHOUETTE_SIZE = 640
 FEATURE_TOLERANCE_PX = 1.5
 #: longest side at which object features are detected
 FEATURE_SIZE = 1600
+#: photos with a longer side than this get a hint to shrink the capture (``max_size``)
+LARGE_PHOTO = 1024
 
 
 def _extractor(long_side: int):
@@ -198,6 +201,7 @@ def build_capture(
     progress: bool = True,
     log: Callable[[str], None] | None = None,
     reconstruct: Callable[..., SfmResult] = run_sfm,
+    max_size: int | None = None,
 ) -> dict:
     """Turn the photo capture ``photos`` into a standard capture at ``out`` (module docstring); returns the
     report written to ``out/report.json``. Bad input raises :class:`PhotoCaptureError` (a ``ValueError``)
@@ -210,7 +214,9 @@ def build_capture(
     maps of every view from a first reconstruction of each state (:mod:`.fitted_depth`), likewise the
     training's start (the default of ``dsg-capture``, ``--depth fit``; none here unless given). ``reconstruct``: the
     structure-from-motion step, called as :func:`.sfm.run_sfm` is (a benchmark passes one that puts known
-    cameras in place, :func:`.compare.with_true_cameras`)."""
+    cameras in place, :func:`.compare.with_true_cameras`). ``max_size``: the capture's views are shrunk to at
+    most this many pixels on the long side (:mod:`.shrink`; images area-averaged, intrinsics scaled) before
+    any depth fit; poses, the frame, the marker and the motions are still estimated on the whole photos."""
     if metres_per_unit is not None and not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
         raise ValueError(f"metres per unit must be a positive number, got {metres_per_unit}")
     if marker_size is not None and not (np.isfinite(marker_size) and marker_size > 0):
@@ -219,6 +225,10 @@ def build_capture(
         raise ValueError("give the scale once: a marker size or metres per unit, not both")
     if stereo and depth_fit is not None:
         raise ValueError("choose one source of depth maps: stereo or a depth fit, not both")
+    if max_size is not None and not (isinstance(max_size, int) and max_size >= 16):
+        raise ValueError(
+            f"the capture's largest side must be an integer of at least 16 pixels, got {max_size!r}"
+        )
     say = log or (lambda _m: None)
     t_start = time.perf_counter()
     capture = read_photo_capture(photos)
@@ -232,6 +242,11 @@ def build_capture(
         tempfile.TemporaryDirectory(prefix=f".{out.name}.work.", dir=out.absolute().parent) as work,
     ):
         sfm = reconstruct(capture, work, progress=progress, log=say)
+        photo_side = max(max(c.width, c.height) for c in sfm.cameras.values())
+        if max_size is None and photo_side > LARGE_PHOTO:
+            say(
+                f"the photos are {photo_side} px on the long side and so is the capture; --max-size PX shrinks it"
+            )
         t = time.perf_counter()
         marker_obs = [] if marker_size is not None else None
         with quiet_colmap():
@@ -287,6 +302,10 @@ def build_capture(
         depth = _write_depths(stage, sfm, unds, frame, progress) if stereo else None
         t_depth = time.perf_counter() - t
         report = _write(capture, sfm, unds, frame, motions, stage, metres_per_unit, photos, scale_info, depth)
+        size = shrink_capture(stage, PHOTO_STATES, max_size) if max_size else None
+        report["capture_size"] = list(size or (unds["state1"].width, unds["state1"].height))
+        if size:
+            say(f"capture shrunk to {size[0]}x{size[1]}")
         t = time.perf_counter()
         report["fitted_depth"] = None
         if depth_fit is not None:

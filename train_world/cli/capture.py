@@ -94,8 +94,18 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         metavar="N",
-        help="with --depth fit: train each first reconstruction on the photos downscaled by the integer N "
-        f"(its depth is still rendered at the photos' size; default {DepthFit.downscale})",
+        help="with --depth fit: train each first reconstruction on the capture's views downscaled by the "
+        f"integer N (its depth is still rendered at their size; default {DepthFit.downscale})",
+    )
+    p.add_argument(
+        "--max-size",
+        type=int,
+        default=None,
+        metavar="PX",
+        help="shrink the capture's views to at most PX pixels on the long side (images area-averaged, "
+        "intrinsics scaled), the size the world will train at: a phone's photos are far larger than a CPU "
+        "trains at; poses, the table frame, the marker and the object motions still use the whole photos "
+        "(default: the photos' size)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -122,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{flag} is for --depth fit, not --depth {args.depth}")
     if args.fit_downscale is not None and args.fit_downscale < 1:
         parser.error(f"--fit-downscale must be an integer >= 1, got {args.fit_downscale}")
+    if args.max_size is not None and args.max_size < 16:
+        parser.error(f"--max-size must be at least 16 pixels, got {args.max_size}")
     if args.fit_steps is not None and args.fit_steps < 100:
         parser.error(f"--fit-steps needs at least 100 steps, got {args.fit_steps}")
     if args.marker_size is not None and not args.marker_size > 0:
@@ -149,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             depth_fit=_depth_fit(args) if args.depth == "fit" else None,
             progress=not args.quiet,
             log=None if args.quiet else say,
+            max_size=args.max_size,
         )
     except (ValueError, FileExistsError) as e:
         print(f"dsg-capture: error: {e}", file=sys.stderr)

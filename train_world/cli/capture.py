@@ -6,6 +6,7 @@ Examples::
     dsg-capture photos/ --out data/my_table --metres-per-unit 0.62 --overwrite
     dsg-capture photos/ --out data/my_table --marker-size 0.06  # metric, from an ArUco marker in the photos
     dsg-capture photos/ --out data/my_table --depth none        # no depth maps: seconds, not minutes
+    dsg-capture photos/ --out data/my_table --max-size 128      # phone photos: a capture of 128 px, as worlds train at
     dsg-capture photos/ --extract-frames 40     # state1/walk.mp4 -> state1/images/frame_0000.jpg ... (then masks)
 
 ``photos/`` holds ``state1/`` and ``state2/``, each with ``images/`` (JPEG or PNG) and ``masks/`` (one PNG of

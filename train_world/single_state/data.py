@@ -25,6 +25,7 @@ import torch
 from PIL import Image
 
 from train_world.capture import load_blender, load_capture
+from train_world.capture.files import area_resize
 from train_world.capture.points import capture_points
 
 __all__ = ["TrainData", "load_eval_views", "load_training_data", "resolve_source"]
@@ -105,10 +106,10 @@ def _alphas(paths, downscale: int) -> torch.Tensor | None:
         with Image.open(q) as img:
             if img.mode != "RGBA":
                 return None
-            a = img.getchannel("A")
+            a = np.asarray(img.getchannel("A"), dtype=np.float32)
             if downscale > 1:
-                a = a.resize((a.width // downscale, a.height // downscale), Image.Resampling.BOX)
-            out.append(np.asarray(a, dtype=np.float32) / 255.0)
+                a = area_resize(a[..., None], (img.width // downscale, img.height // downscale))[..., 0]
+            out.append(a / 255.0)
     return torch.from_numpy(np.stack(out))
 
 

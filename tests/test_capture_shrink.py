@@ -1,4 +1,4 @@
-"""Shrinking a capture's views: images area-averaged, masks and depth nearest, intrinsics scaled."""
+"""Shrinking a capture's views: images area-averaged, masks by majority, depth nearest, intrinsics scaled."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from train_world.capture.files import area_resize
+from train_world.capture.files import area_resize, label_resize
 from train_world.capture.loader import load_capture
 from train_world.capture.shrink import shrink_capture, shrunk_size
 from train_world.synth.generate import GenerateConfig, generate_scene
@@ -59,6 +59,25 @@ def test_area_resize_is_the_block_mean_without_rounding():
     block = a.astype(np.float64).reshape(6, 2, 8, 2, 3).mean(axis=(1, 3))
     np.testing.assert_allclose(area_resize(a, (8, 6)), block, atol=1e-4)  # no half-level bias
     assert area_resize(a, (16, 12)).dtype == np.float32
+
+
+def test_label_resize_takes_the_majority_of_each_block():
+    ids = np.array(
+        [
+            [1, 1, 0, 0],
+            [1, 0, 0, 2],
+            [3, 3, 2, 2],
+            [0, 3, 0, 2],
+        ],
+        dtype=np.uint8,
+    )
+    # the bottom-right pixel of each block, which Pillow's nearest pixel takes, would give [[0, 2], [3, 2]]
+    np.testing.assert_array_equal(label_resize(ids, (2, 2)), [[1, 0], [3, 2]])
+    np.testing.assert_array_equal(label_resize(np.array([[2, 2], [1, 1]], np.uint8), (1, 1)), [[1]])  # a tie
+    up = np.kron(ids, np.ones((3, 3), np.uint8))  # each id a 3x3 block: shrinking gives the ids back
+    np.testing.assert_array_equal(label_resize(up, (4, 4)), ids)
+    odd = label_resize(up, (5, 5))  # not an integer factor: the id under each pixel's centre
+    assert odd.shape == (5, 5) and set(np.unique(odd)) <= {0, 1, 2, 3}
 
 
 def test_the_loaders_downscale_is_the_block_mean(capture):

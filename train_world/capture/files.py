@@ -55,6 +55,24 @@ def area_resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.stack([np.asarray(q, dtype=np.float32) for q in planes], axis=-1)
 
 
+def label_resize(ids: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Object ids ``[H,W]`` (uint8) resized to ``size`` ``(width, height)`` without blending them: by an integer
+    factor ``k``, each output pixel takes the id most of its ``k x k`` block shows (ties go to the lower id);
+    otherwise the id under the output pixel's centre. (Pillow's nearest pixel, by an even factor, takes a
+    pixel half an input pixel off the block's centre, which shifts every outline.)"""
+    a = np.asarray(ids)
+    (h, w), (ow, oh) = a.shape, size
+    if (ow, oh) == (w, h):
+        return a.copy()
+    if w % ow or h % oh or w // ow != h // oh:
+        return np.asarray(Image.fromarray(a.astype(np.uint8)).resize(size, Image.Resampling.NEAREST))
+    k = w // ow
+    blocks = a.reshape(oh, k, ow, k).transpose(0, 2, 1, 3).reshape(oh, ow, k * k)
+    present = np.unique(blocks)
+    counts = np.stack([(blocks == i).sum(axis=-1) for i in present], axis=-1)
+    return present[np.argmax(counts, axis=-1)].astype(a.dtype)
+
+
 def read_rgb(path: Path, background: Sequence[float], downscale: int) -> tuple[np.ndarray, tuple[int, int]]:
     """RGB float32 [H,W,3] (downscaled) and the original (width, height)."""
     img = _open_image(path, "image")
@@ -105,9 +123,9 @@ def read_mask(
         img = Image.fromarray(a.astype(np.uint8))
     elif img.mode not in ("L", "P"):
         raise CaptureError(f"{path}: unsupported mask mode {img.mode}")
-    if downscale > 1:
-        img = img.resize(size, Image.Resampling.NEAREST)
     m = np.asarray(img, dtype=np.uint8)
+    if downscale > 1:
+        m = label_resize(m, size)
     if valid_ids is not None:
         present = np.unique(m)
         bad = np.setdiff1d(present, np.append(valid_ids, 0))

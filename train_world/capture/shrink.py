@@ -2,7 +2,8 @@
 size a world trains at on a CPU.
 
 Images are area-averaged (each pixel the mean of the photo's pixels it covers, as a smaller sensor would see
-them), object-id masks and depth maps take the nearest pixel (ids and depths are never blended), and the
+them), object-id masks take the id most of those pixels show (:func:`~train_world.capture.files.label_resize`),
+depth maps the nearest pixel (ids and depths are never blended), and the
 pinhole intrinsics scale with the size along each axis. Pixel ``(u, v)`` is centred at ``(u + 0.5, v + 0.5)``,
 so a point seen at ``(x, y)`` in the photo is seen at ``(x * W' / W, y * H' / H)`` in the shrunk view.
 """
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from train_world.capture.files import area_resize
+from train_world.capture.files import area_resize, label_resize
 from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
 
 __all__ = ["shrunk_size", "shrink_capture"]
@@ -39,8 +40,14 @@ def _shrink_image(path: Path, size: tuple[int, int]) -> None:
     atomic_write_bytes(path, encode_png(small))
 
 
-def _shrink_labels(path: Path, size: tuple[int, int]) -> None:
-    """Ids or depth: the nearest pixel, never a blend."""
+def _shrink_mask(path: Path, size: tuple[int, int]) -> None:
+    with Image.open(path) as im:
+        a = np.asarray(im)
+    atomic_write_bytes(path, encode_png(label_resize(a, size)))
+
+
+def _shrink_depth(path: Path, size: tuple[int, int]) -> None:
+    """The nearest pixel's depth, never a blend."""
     with Image.open(path) as im:
         a = np.asarray(im)
     small = np.asarray(Image.fromarray(a.astype(np.int32)).resize(size, Image.Resampling.NEAREST))
@@ -69,9 +76,10 @@ def shrink_capture(folder: str | os.PathLike, states: Iterable[str], max_size: i
     for s, doc in docs.items():
         for fr in doc["frames"]:
             _shrink_image(folder / s / fr["file_path"], size)
-            for key in ("mask_path", "depth_path"):
-                if fr.get(key):
-                    _shrink_labels(folder / s / fr[key], size)
+            if fr.get("mask_path"):
+                _shrink_mask(folder / s / fr["mask_path"], size)
+            if fr.get("depth_path"):
+                _shrink_depth(folder / s / fr["depth_path"], size)
         doc["w"], doc["h"] = size
         doc["fl_x"], doc["cx"] = float(doc["fl_x"]) * sx, float(doc["cx"]) * sx
         doc["fl_y"], doc["cy"] = float(doc["fl_y"]) * sy, float(doc["cy"]) * sy

@@ -14,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _captures import tiny_capture
+from PIL import Image
 
 from dsg_gym.cameras import Cameras, look_at
 from dsg_gym.gaussians import GaussianSet
-from dsg_gym.world import World, load_world
+from dsg_gym.world import World, load_world, write_world
 from train_world.cli import train as train_cli
 from train_world.cli.eval import main as eval_main
 from train_world.eval.evaluate import evaluate, evaluate_test_states
@@ -223,6 +224,64 @@ def test_when_the_frames_are_aligned_and_when_cameras_do_not_match(trained, tmp_
     )
     rep = json.loads((tmp_path / "e" / "report.json").read_text())
     assert rep["views"] == 16 and rep["frame_alignment"]["scale"] == pytest.approx(2.0, rel=1e-5)
+
+
+def _enlarged_capture(src: Path, dst: Path, k: int) -> Path:
+    """``src`` with every view ``k`` times as wide and high: each pixel of its images, masks and depth repeated
+    ``k x k`` times and the intrinsics scaled, so that downscaling by ``k`` gives back the views of ``src``."""
+    shutil.copytree(src, dst)
+    for tj in dst.glob("*/transforms.json"):
+        doc = json.loads(tj.read_text())
+        for d in (doc, *doc["frames"]):
+            for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+                if key in d:
+                    d[key] *= k
+            for key in ("file_path", "mask_path", "depth_path"):
+                if key in d:
+                    img = Image.open(tj.parent / d[key])
+                    img.load()
+                    img.resize((img.width * k, img.height * k), Image.Resampling.NEAREST).save(
+                        tj.parent / d[key]
+                    )
+        tj.write_text(json.dumps(doc))
+    return dst
+
+
+def test_a_world_is_scored_at_the_size_it_was_trained_at(trained, tmp_path):
+    cap, world, moved = trained
+    w = load_world(world)
+    size = list(w.metadata["image_size"])
+    al = fit_frame_alignment(w, moved)
+    same = evaluate_test_states(world, moved, tmp_path / "same", alignment=al)
+    # a ground truth twice the world's size is brought down to it: the same views, the same scores
+    big = _enlarged_capture(moved, tmp_path / "big", 2)
+    assert Image.open(big / "test_0" / "images" / "0000.png").size == (2 * size[0], 2 * size[1])
+    rep = evaluate_test_states(world, big, tmp_path / "big_eval", alignment=fit_frame_alignment(w, big))
+    assert rep["mean"] == same["mean"]
+    for s in rep["states"]:
+        r = json.loads((tmp_path / "big_eval" / s / "report.json").read_text())
+        assert (
+            r["image_size"] == size
+            and r["per_view"] == json.loads((tmp_path / "same" / s / "report.json").read_text())["per_view"]
+        )
+    # a world trained on its capture downscaled (photos larger than the world) is scored at its own size too,
+    # not at the ground truth's size divided by its training downscale
+    src = {**w.metadata["source"], "downscale": 2}
+    halved = write_world(
+        tmp_path / "halved.dsgworld", dataclasses.replace(w, metadata={**w.metadata, "source": src})
+    )
+    rep = evaluate_test_states(halved, moved, tmp_path / "halved_eval", alignment=al)
+    assert rep["mean"] == same["mean"]
+    assert json.loads((tmp_path / "halved_eval" / "test_0" / "report.json").read_text())["image_size"] == size
+    # a ground truth of another size is refused, naming both sizes, and nothing is written
+    odd = write_world(
+        tmp_path / "odd.dsgworld",
+        dataclasses.replace(w, metadata={**w.metadata, "image_size": [size[0] - 8, size[1] - 8]}),
+    )
+    with pytest.raises(ValueError, match=rf"views are {size[0]}x{size[1]}, the world was trained at") as e:
+        evaluate_test_states(odd, moved, tmp_path / "odd_eval", alignment=al)
+    assert "\n" not in str(e.value) and "integer multiple" in str(e.value)
+    assert not (tmp_path / "odd_eval").exists()
 
 
 def test_aligning_each_view_recovers_what_camera_errors_cost(trained, tmp_path, capsys):

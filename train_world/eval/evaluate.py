@@ -25,7 +25,10 @@ A world trained on a ``dsg-capture`` capture lives in the frame estimated from i
 truth of that capture instead (``dsg-synth --as-photos`` writes it to ``ground_truth/``), ``dsg-eval`` fits
 the similarity between the two frames from the world's training cameras (:mod:`train_world.eval.frames`),
 moves the ground truth's test cameras and object poses into the world's frame and scores the test states as
-usual; the reports record the similarity and its residuals under ``"frame_alignment"``.
+usual; the reports record the similarity and its residuals under ``"frame_alignment"``. The views are scored at
+the size the world was trained at (its ``image_size``): a ground truth an integer multiple of that size is
+downscaled to it (a world trained with ``--downscale 2`` on photos twice the ground truth's size is scored at the
+ground truth's own size); another size is refused.
 
 ``dsg-eval --suite [dsg-suite options]`` runs the DSG-World comparison on the default scenes
 (:mod:`train_world.suite.runner`).
@@ -146,6 +149,22 @@ def layer_mask(world: World) -> np.ndarray | None:
     return np.arange(n) >= world.background.num
 
 
+def _truth_downscale(capture: str | Path, size: tuple[int, int], trained: Any) -> int:
+    """The integer factor that brings a ground truth's views (``size``, width and height) to the size the world
+    was trained at (``trained``, its ``image_size``; 1 when the world does not record it). ValueError when the
+    views are not that size or an integer multiple of it."""
+    if not trained:
+        return 1
+    tw, th = (int(v) for v in trained)
+    k = size[0] // tw if tw else 0
+    if k < 1 or (size[0], size[1]) != (tw * k, th * k):
+        raise ValueError(
+            f"{capture}: views are {size[0]}x{size[1]}, the world was trained at {tw}x{th}; score it against "
+            "a ground truth of that size or an integer multiple of it"
+        )
+    return k
+
+
 def _poses_for(
     world: World, capture: Path, state: str, alignment: FrameAlignment | None = None
 ) -> np.ndarray:
@@ -216,15 +235,23 @@ def evaluate(
             f"training views: {capture} is a ground truth in another frame; score the training views against "
             "the capture the world was trained on (or pass --same-frame)"
         )
-    views = load_eval_views(
+    load = functools.partial(
+        load_eval_views,
         capture,
         state=eval_state,
         heldout=tuple(held.get(eval_state, ())),
-        downscale=int(src.get("downscale", 1)),
         background=bg,
         object_ids=world.object_ids,
         all_views=training_views or alignment is not None or (state is not None and not at_training_state),
     )
+    downscale = int(src.get("downscale", 1))
+    if alignment is None:
+        views = load(downscale=downscale)
+    else:  # another capture: its views are brought to the size the world was trained at
+        views = load(downscale=1)
+        downscale = _truth_downscale(capture, (views.width, views.height), meta.get("image_size"))
+        if downscale > 1:
+            views = load(downscale=downscale)
     if (
         alignment is None
         and src.get("kind") == "capture"
@@ -258,7 +285,6 @@ def evaluate(
     regions = RegionErrors(world.object_names) if gt_cls is not None else None
     seen = None
     if regions is not None and trained and src.get("kind") == "capture":
-        downscale = int(src.get("downscale", 1))
         seen = capture_coverage(capture, eval_state, views.indices, trained, held, downscale)
     for i in range(len(gt_imgs)):
         ours = np.clip(rgb[i], 0, 1)

@@ -124,3 +124,21 @@ def test_small_views_and_mixed_sizes_are_left_alone(capture, tmp_path):
     with pytest.raises(ValueError, match="differ in size"):
         shrink_capture(small, STATES, 16)
     assert {p: p.read_bytes() for p in small.rglob("*") if p.is_file()} == before
+
+
+def test_photos_for_the_motions_are_area_averaged_and_keep_their_ids():
+    pytest.importorskip("pycolmap")
+    from train_world.capture.photo_capture import SILHOUETTE_SIZE, _photo_view
+
+    n = 2 * SILHOUETTE_SIZE
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (n, n, 3), dtype=np.uint8)
+    ids = np.zeros((n, n), np.uint8)
+    ids[101:603, 200:901] = 2  # odd start: blocks on the outline are split between two ids
+    K = np.array([[900.0, 0.0, n / 2], [0.0, 900.0, n / 2], [0.0, 0.0, 1.0]])
+    v = _photo_view(rgb, ids, K, np.eye(4))
+    means = rgb.reshape(SILHOUETTE_SIZE, 2, SILHOUETTE_SIZE, 2, 3).astype(np.float64).mean(axis=(1, 3))
+    assert v.rgb.dtype == np.uint8 and v.rgb.shape == (SILHOUETTE_SIZE, SILHOUETTE_SIZE, 3)
+    assert np.abs(v.rgb - means).max() <= 0.5 + 1e-6 and abs(np.mean(v.rgb - means)) < 0.01  # unbiased
+    np.testing.assert_array_equal(v.ids, label_resize(ids, (SILHOUETTE_SIZE, SILHOUETTE_SIZE)))
+    np.testing.assert_allclose(v.K[:2], K[:2] / 2)

@@ -32,27 +32,23 @@ def test_noise_and_exposure_together():
     assert out.dtype == np.uint8 and out.shape == img.shape and not np.array_equal(out, img)
 
 
-def test_photo_options_need_as_photos(tmp_path, capsys):
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (["--photo-exposure", "0.1"], "--as-photos"),
+        (["--as-photos", "--photo-exposure", "1.5"], "[0, 1)"),
+        (["--photo-scale", "2"], "--as-photos"),
+        (["--as-photos", "--photo-scale", "0"], "--photo-scale"),
+    ],
+)
+def test_photo_options_need_as_photos_and_sane_values(tmp_path, capsys, args, says):
     with pytest.raises(SystemExit):
-        synth_cli.main(["--scene", "two_blocks", "--out", str(tmp_path / "x"), "--photo-exposure", "0.1"])
-    assert "--as-photos" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        synth_cli.main(
-            ["--scene", "two_blocks", "--out", str(tmp_path / "x"), "--as-photos", "--photo-exposure", "1.5"]
-        )
-    assert "[0, 1)" in capsys.readouterr().err
+        synth_cli.main(["--scene", "two_blocks", "--out", str(tmp_path / "x"), *args])
+    assert says in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
 
 
-def test_photo_scale_needs_as_photos_and_a_sane_factor(tmp_path, capsys):
-    with pytest.raises(SystemExit):
-        synth_cli.main(["--scene", "two_blocks", "--out", str(tmp_path / "x"), "--photo-scale", "2"])
-    assert "--as-photos" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        synth_cli.main(
-            ["--scene", "two_blocks", "--out", str(tmp_path / "x"), "--as-photos", "--photo-scale", "0"]
-        )
-    assert "--photo-scale" in capsys.readouterr().err
+def test_photo_scale_must_be_an_integer(tmp_path):
     with pytest.raises(ValueError, match="scale"):
         generate_photo_capture("two_blocks", tmp_path / "x", scale=2.5)
     assert not (tmp_path / "x").exists()

@@ -34,6 +34,7 @@ from tqdm import tqdm
 from train_world.capture.appearance import ColourView
 from train_world.capture.cameras import GL_TO_CV
 from train_world.capture.features import ViewFeatures, extract_view_features
+from train_world.capture.files import area_resize, label_resize
 from train_world.capture.fitted_depth import DepthFit, fit_depth_maps
 from train_world.capture.format import (
     FORMAT_NAME,
@@ -102,8 +103,8 @@ def _photo_view(rgb: np.ndarray, ids: np.ndarray, K: np.ndarray, w2c: np.ndarray
     s = min(1.0, SILHOUETTE_SIZE / max(h, w))
     if s < 1.0:
         size = (max(1, round(w * s)), max(1, round(h * s)))
-        ids = np.asarray(Image.fromarray(ids).resize(size, Image.NEAREST))
-        rgb = np.asarray(Image.fromarray(rgb).resize(size, Image.BOX))
+        ids = label_resize(ids, size)
+        rgb = np.clip(np.rint(area_resize(rgb, size)), 0, 255).astype(np.uint8)
         K = K.copy()
         K[0] *= size[0] / w
         K[1] *= size[1] / h

@@ -271,7 +271,8 @@ def test_a_world_is_scored_at_the_size_it_was_trained_at(trained, tmp_path):
         tmp_path / "halved.dsgworld", dataclasses.replace(w, metadata={**w.metadata, "source": src})
     )
     rep = evaluate_test_states(halved, moved, tmp_path / "halved_eval", alignment=al)
-    assert rep["mean"] == same["mean"]
+    assert rep["mean"] == same["mean"] and rep["image_size"] == size
+    assert all(v["image_size"] == size for v in rep["states"].values())
     assert json.loads((tmp_path / "halved_eval" / "test_0" / "report.json").read_text())["image_size"] == size
     # a ground truth of another size is refused, naming both sizes, and nothing is written
     odd = write_world(

@@ -388,7 +388,8 @@ def evaluate_test_states(
     view_alignment: ViewAlignment | None = None,
 ) -> dict[str, Any]:
     """:func:`evaluate` at every test state of ``capture`` (into ``out_dir/<state>/``), then
-    ``out_dir/report.json`` and ``report.md``: each state's view count and mean, and ``"mean"``, the mean over
+    ``out_dir/report.json`` and ``report.md``: each state's view count, the size its views were scored at
+    (``"image_size"``, also at the top) and mean, and ``"mean"``, the mean over
     the states of their means (a metric missing in a state is left out of its mean). ``alignment``,
     ``view_alignment``: as for :func:`evaluate` (``"mean_unaligned"`` too, the mean over the states).
     ValueError when the capture has no test states."""
@@ -401,7 +402,7 @@ def evaluate_test_states(
         r = evaluate(
             world_path, capture, out / s, state=s, alignment=alignment, view_alignment=view_alignment
         )
-        per_state[s] = {"views": r["views"], "mean": r["mean"]}
+        per_state[s] = {"views": r["views"], "image_size": r["image_size"], "mean": r["mean"]}
         if "mean_unaligned" in r:
             per_state[s]["mean_unaligned"] = r["mean_unaligned"]
             per_state[s]["view_rotation_deg_rms"] = r["view_alignment"]["rotation_deg_rms"]
@@ -413,6 +414,7 @@ def evaluate_test_states(
         "capture": str(capture),
         "state": "test",
         "views": sum(v["views"] for v in per_state.values()),
+        "image_size": next(iter(per_state.values()))["image_size"],
         "states": per_state,
         "mean": mean,
     }

@@ -266,7 +266,7 @@ def area_downsample(img: np.ndarray, width: int, height: int) -> np.ndarray:
     out = np.stack(
         [
             np.asarray(
-                Image.fromarray(np.ascontiguousarray(chans[..., c], np.float32), mode="F").resize(
+                Image.fromarray(np.ascontiguousarray(chans[..., c], np.float32)).resize(
                     (width, height), Image.BOX
                 )
             )

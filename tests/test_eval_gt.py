@@ -238,11 +238,9 @@ def _enlarged_capture(src: Path, dst: Path, k: int) -> Path:
                     d[key] *= k
             for key in ("file_path", "mask_path", "depth_path"):
                 if key in d:
-                    img = Image.open(tj.parent / d[key])
-                    img.load()
-                    img.resize((img.width * k, img.height * k), Image.Resampling.NEAREST).save(
-                        tj.parent / d[key]
-                    )
+                    with Image.open(tj.parent / d[key]) as img:
+                        big = img.resize((img.width * k, img.height * k), Image.Resampling.NEAREST)
+                    big.save(tj.parent / d[key])
         tj.write_text(json.dumps(doc))
     return dst
 
@@ -255,7 +253,8 @@ def test_a_world_is_scored_at_the_size_it_was_trained_at(trained, tmp_path):
     same = evaluate_test_states(world, moved, tmp_path / "same", alignment=al)
     # a ground truth twice the world's size is brought down to it: the same views, the same scores
     big = _enlarged_capture(moved, tmp_path / "big", 2)
-    assert Image.open(big / "test_0" / "images" / "0000.png").size == (2 * size[0], 2 * size[1])
+    with Image.open(big / "test_0" / "images" / "0000.png") as img:
+        assert img.size == (2 * size[0], 2 * size[1])
     rep = evaluate_test_states(world, big, tmp_path / "big_eval", alignment=fit_frame_alignment(w, big))
     assert rep["mean"] == same["mean"]
     for s in rep["states"]:

@@ -23,6 +23,8 @@ from train_world.capture.cameras import (  # noqa: E402
     opengl_c2w_to_viewmat,
     viewmat_to_opengl_c2w,
 )
+from train_world.capture.loader import view_size  # noqa: E402
+from train_world.single_state.data import eval_view_size  # noqa: E402
 from train_world.synth.generate import GenerateConfig, generate_scene  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "external"
@@ -81,6 +83,18 @@ def test_load_subset_and_downscale(capture_dir):
     np.testing.assert_allclose(
         v.images[0].numpy(), f.images[0].numpy().reshape(12, 2, 16, 2, 3).mean((1, 3)), atol=1.01 / 255
     )  # Pillow rounds the box average to uint8
+
+
+def test_view_size_is_the_size_loaded_at_downscale_one(capture_dir, small_lego):
+    full = load_capture(capture_dir, states=["state2"]).states["state2"]
+    assert view_size(capture_dir / "state2" / "transforms.json") == (full.width, full.height) == (32, 24)
+    assert eval_view_size(capture_dir, "state2") == (32, 24)
+    assert view_size(small_lego / "transforms_train.json") == (
+        50,
+        50,
+    )  # NeRF-Blender: no extension in file_path
+    with pytest.raises(ValueError, match="no state 'state9'"):
+        eval_view_size(capture_dir, "state9")
 
 
 def test_cameras_are_opencv_world_to_camera(capture_dir):
@@ -187,6 +201,9 @@ def test_unreadable_image(broken):
     (broken / "state1" / "images" / "0002.png").write_bytes(b"not a png at all")
     with pytest.raises(CaptureError, match=r"0002\.png: cannot read image"):
         load_capture(broken)
+    (broken / "state1" / "images" / "0000.png").write_bytes(b"not a png at all")
+    with pytest.raises(CaptureError, match=r"0000\.png: cannot read image"):
+        view_size(broken / "state1" / "transforms.json")
 
 
 def test_image_mask_size_mismatch(broken):

@@ -282,6 +282,15 @@ def test_a_world_is_scored_at_the_size_it_was_trained_at(trained, tmp_path):
         evaluate_test_states(odd, moved, tmp_path / "odd_eval", alignment=al)
     assert "\n" not in str(e.value) and "integer multiple" in str(e.value)
     assert not (tmp_path / "odd_eval").exists()
+    # one rule in one frame as well: the world's own capture enlarged 2x scores as the capture itself
+    own = evaluate_test_states(world, cap, tmp_path / "own")
+    own_big = evaluate_test_states(
+        world, _enlarged_capture(cap, tmp_path / "own_big", 2), tmp_path / "own_big_e"
+    )
+    assert own_big["mean"] == own["mean"] and own_big["image_size"] == size
+    with pytest.raises(ValueError, match=rf"views are {size[0]}x{size[1]}, the world was trained at") as e:
+        evaluate_test_states(odd, cap, tmp_path / "odd_own")
+    assert "\n" not in str(e.value) and not (tmp_path / "odd_own").exists()
 
 
 def test_aligning_each_view_recovers_what_camera_errors_cost(trained, tmp_path, capsys):

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-__all__ = ["CaptureError", "read_depth", "read_json", "read_mask", "read_rgb"]
+__all__ = ["CaptureError", "image_size", "read_depth", "read_json", "read_mask", "read_rgb"]
 
 
 class CaptureError(ValueError):
@@ -38,6 +38,17 @@ def _open_image(path: Path, what: str) -> Image.Image:
     except Exception as e:  # Pillow raises many types for corrupt files
         raise CaptureError(f"{path}: cannot read {what} ({e})") from e
     return img
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of the image at ``path``, from its header (nothing is decoded)."""
+    if not path.is_file():
+        raise CaptureError(f"{path}: image file not found")
+    try:
+        with Image.open(path) as img:
+            return img.size
+    except Exception as e:  # Pillow raises many types for corrupt files
+        raise CaptureError(f"{path}: cannot read image ({e})") from e
 
 
 def area_resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -25,10 +25,19 @@ import numpy as np
 import torch
 
 from train_world.capture.cameras import check_rigid, focal_from_fov, intrinsics_matrix, opengl_c2w_to_viewmat
-from train_world.capture.files import CaptureError, read_depth, read_json, read_mask, read_rgb
+from train_world.capture.files import CaptureError, image_size, read_depth, read_json, read_mask, read_rgb
 from train_world.capture.format import DEPTH_SCALE, FORMAT_NAME, FORMAT_VERSION
 
-__all__ = ["Capture", "CaptureError", "ObjectInfo", "Views", "load_blender", "load_capture", "load_views"]
+__all__ = [
+    "Capture",
+    "CaptureError",
+    "ObjectInfo",
+    "Views",
+    "load_blender",
+    "load_capture",
+    "load_views",
+    "view_size",
+]
 
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
@@ -161,6 +170,25 @@ def _intrinsics(meta: Mapping, frame: Mapping, w: int, h: int, src: str) -> np.n
     if not all(np.isfinite(vals)) or vals[0] <= 0 or vals[1] <= 0:
         raise CaptureError(f"{src}: invalid intrinsics fx, fy, cx, cy = {vals}")
     return intrinsics_matrix(*vals)
+
+
+def view_size(
+    transforms_json: str | Path, *, blender_ext: str | None = ".png", root: str | Path | None = None
+) -> tuple[int, int]:
+    """``(width, height)`` of the first frame's image of ``transforms_json``, read from its header: the size
+    :func:`load_views` loads at ``downscale`` 1 (it refuses frames of other sizes); ``blender_ext`` and
+    ``root`` as there."""
+    tj = Path(transforms_json)
+    root = tj.parent if root is None else Path(root)
+    meta = read_json(tj)
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise CaptureError(f"{tj}: expected an object with a non-empty 'frames' list")
+    fr = meta["frames"][0]
+    if not isinstance(fr, dict) or "file_path" not in fr:
+        raise CaptureError(f"{tj}: frames[0]: needs 'file_path' and 'transform_matrix'")
+    return image_size(
+        _resolve(tj.parent, fr["file_path"], blender_ext, root, f"{tj}: frames[0]", "file_path")
+    )
 
 
 def load_views(

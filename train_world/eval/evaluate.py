@@ -25,10 +25,11 @@ A world trained on a ``dsg-capture`` capture lives in the frame estimated from i
 truth of that capture instead (``dsg-synth --as-photos`` writes it to ``ground_truth/``), ``dsg-eval`` fits
 the similarity between the two frames from the world's training cameras (:mod:`train_world.eval.frames`),
 moves the ground truth's test cameras and object poses into the world's frame and scores the test states as
-usual; the reports record the similarity and its residuals under ``"frame_alignment"``. The views are scored at
-the size the world was trained at (its ``image_size``): a ground truth an integer multiple of that size is
-downscaled to it (a world trained with ``--downscale 2`` on photos twice the ground truth's size is scored at the
-ground truth's own size); another size is refused.
+usual; the reports record the similarity and its residuals under ``"frame_alignment"``.
+
+Views are scored at the size the world was trained at (its ``image_size``): views an integer multiple of that
+size are downscaled to it, as training downscaled its own (a world trained with ``--downscale 2`` on photos twice
+the ground truth's size is scored at the ground truth's own size); another size is refused.
 
 ``dsg-eval --suite [dsg-suite options]`` runs the DSG-World comparison on the default scenes
 (:mod:`train_world.suite.runner`).
@@ -64,7 +65,7 @@ from train_world.eval.metrics import mask_iou, psnr, psnr_from_mse, ssim
 from train_world.eval.regions import RegionErrors, capture_coverage, combine
 from train_world.eval.report_files import fmt, grid, markdown, region_lines, u8
 from train_world.eval.view_align import ViewAlignment, align_views
-from train_world.single_state.data import load_eval_views
+from train_world.single_state.data import eval_view_size, load_eval_views
 
 __all__ = [
     "capture_test_states",
@@ -150,11 +151,9 @@ def layer_mask(world: World) -> np.ndarray | None:
 
 
 def _truth_downscale(capture: str | Path, size: tuple[int, int], trained: Any) -> int:
-    """The integer factor that brings a ground truth's views (``size``, width and height) to the size the world
-    was trained at (``trained``, its ``image_size``; 1 when the world does not record it). ValueError when the
-    views are not that size or an integer multiple of it."""
-    if not trained:
-        return 1
+    """The integer factor that brings the views to score (``size``, width and height) to the size the world
+    was trained at (``trained``, its ``image_size``). ValueError when the views are not that size or an
+    integer multiple of it."""
     tw, th = (int(v) for v in trained)
     k = size[0] // tw if tw else 0
     if k < 1 or (size[0], size[1]) != (tw * k, th * k):
@@ -244,24 +243,12 @@ def evaluate(
         object_ids=world.object_ids,
         all_views=training_views or alignment is not None or (state is not None and not at_training_state),
     )
-    downscale = int(src.get("downscale", 1))
-    if alignment is None:
-        views = load(downscale=downscale)
-    else:  # another capture: its views are brought to the size the world was trained at
-        views = load(downscale=1)
-        downscale = _truth_downscale(capture, (views.width, views.height), meta.get("image_size"))
-        if downscale > 1:
-            views = load(downscale=downscale)
-    if (
-        alignment is None
-        and src.get("kind") == "capture"
-        and views.width * views.height
-        and (views.width, views.height) != tuple(meta.get("image_size", (views.width, views.height)))
-    ):
-        raise ValueError(
-            f"{capture}: views are {views.width}x{views.height}, the world was trained at "
-            f"{meta.get('image_size')}"
-        )
+    trained_size = meta.get("image_size")
+    if trained_size:  # the views are scored at the size the world was trained at
+        downscale = _truth_downscale(capture, eval_view_size(capture, eval_state), trained_size)
+    else:  # a world that does not record its size: its own capture's views at its training downscale
+        downscale = int(src.get("downscale", 1)) if alignment is None else 1
+    views = load(downscale=downscale)
     poses = _poses_for(world, Path(capture), eval_state, alignment) if world.num_objects else None
     g = world.gaussians(poses=poses) if poses is not None else world.gaussians(state=trained_state)
     viewmats = views.viewmats.numpy() if alignment is None else alignment.viewmats(views.viewmats.numpy())

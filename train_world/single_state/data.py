@@ -26,9 +26,10 @@ from PIL import Image
 
 from train_world.capture import load_blender, load_capture
 from train_world.capture.files import area_resize
+from train_world.capture.loader import view_size
 from train_world.capture.points import capture_points
 
-__all__ = ["TrainData", "load_eval_views", "load_training_data", "resolve_source"]
+__all__ = ["TrainData", "eval_view_size", "load_eval_views", "load_training_data", "resolve_source"]
 
 
 @dataclass(frozen=True)
@@ -229,6 +230,31 @@ class EvalViews:
     names: tuple[str, ...]
 
 
+def _eval_json(path: str | Path) -> tuple[str, Path]:
+    """The kind of ``path`` (:func:`resolve_source`) and, for NeRF-Blender data, its test split's JSON."""
+    kind, p = resolve_source(path)
+    if kind == "blender":
+        tj = blender_test_json(p) if p.name == "transforms_train.json" else p
+        if tj is None:
+            raise ValueError(
+                f"{p.parent}: no transforms_test_subset.json or transforms_test.json to evaluate on"
+            )
+        return kind, tj
+    return kind, p
+
+
+def eval_view_size(path: str | Path, state: str | None) -> tuple[int, int]:
+    """``(width, height)`` of the views :func:`load_eval_views` loads from ``path`` at ``downscale`` 1, read from
+    one image's header."""
+    kind, p = _eval_json(path)
+    if kind == "blender":
+        return view_size(p)
+    cap = load_capture(p, states=[], load_depth=False)  # metadata only
+    if state not in cap.splits:
+        raise ValueError(f"{p}: no state {state!r} (states: {list(cap.splits)})")
+    return view_size(p / state / "transforms.json", root=p)
+
+
 def load_eval_views(
     path: str | Path,
     *,
@@ -241,14 +267,9 @@ def load_eval_views(
 ) -> EvalViews:
     """Held-out views: the Blender test split, or the ``heldout`` views of ``state`` (all its views when
     ``all_views``, e.g. a test state)."""
-    kind, p = resolve_source(path)
+    kind, p = _eval_json(path)
     if kind == "blender":
-        tj = blender_test_json(p) if p.name == "transforms_train.json" else p
-        if tj is None:
-            raise ValueError(
-                f"{p.parent}: no transforms_test_subset.json or transforms_test.json to evaluate on"
-            )
-        v = load_blender(tj, background=background, downscale=downscale)
+        v = load_blender(p, background=background, downscale=downscale)
         idx = tuple(range(len(v)))
         return EvalViews(
             v.images,

@@ -10,16 +10,9 @@ import shutil
 import numpy as np
 import pytest
 
-from dsg_gym.cameras import look_at, unproject
 from tests._captures import tiny_capture
 from train_world.capture import load_capture
-from train_world.capture.fitted_depth import (
-    DepthFit,
-    fit_depth_maps,
-    fitted_depths,
-    rendered_depths,
-    snap_to_table,
-)
+from train_world.capture.fitted_depth import DepthFit, fit_depth_maps, fitted_depths, rendered_depths
 from train_world.capture.format import DEPTH_SCALE
 
 FIT = DepthFit(steps=300, max_gaussians=5000, downscale=1)  # at the photos' size (the default halves it)
@@ -87,39 +80,6 @@ def test_faint_gaussians_do_not_pull_the_depth_nearer():
     assert opaque == pytest.approx(2.0, rel=1e-4)
     assert every < 1.99  # the faint one in front pulls the expected depth towards the camera
     assert DepthFit().min_opacity == 0.2 and DepthFit().downscale == 2
-
-
-def test_depth_near_the_table_top_is_put_on_it():
-    vm = look_at((0.3, -0.5, 0.6), (0.0, 0.0, 0.0))
-    K = np.array([[40.0, 0.0, 24.0], [0.0, 40.0, 24.0], [0.0, 0.0, 1.0]])
-    bounds = np.array([[-0.4, -0.3, 0.0], [0.4, 0.3, 0.0]])
-    v, u = np.mgrid[0:48, 0:48].reshape(2, -1) + 0.5
-    centre = unproject(0.0, 0.0, 0.0, vm, K)[0]
-    ray = unproject(u, v, np.ones_like(u), vm, K) - centre
-    plane = -centre[2] / ray[:, 2]  # camera z where each pixel's ray meets z = 0 (all rays go down here)
-    hit = centre + plane[:, None] * ray
-    inside = (np.abs(hit[:, 0]) <= 0.4) & (np.abs(hit[:, 1]) <= 0.3)
-    assert 0.2 < inside.mean() < 0.9  # the table covers part of the view, the rest lies beyond its bounds
-    rng = np.random.default_rng(0)
-    off = rng.uniform(-0.08, 0.08, plane.shape)  # relative error of a fit's depth
-    depth = (plane * (1 + off)).astype(np.float32)
-    depth[::7] = 0.0  # no depth: left alone
-    background = rng.random(plane.shape) > 0.1
-    out = snap_to_table(
-        depth.reshape(1, 48, 48), vm[None], K[None], bounds, 0.05, background.reshape(1, 48, 48)
-    )
-    out = out.reshape(-1)
-    snap = inside & background & (np.abs(off) <= 0.05) & (depth > 0)
-    assert snap.sum() > 300
-    np.testing.assert_allclose(out[snap], plane[snap], rtol=1e-6)  # on the plane
-    assert np.array_equal(out[~snap], depth[~snap])  # the rest as fitted: far off, outside, objects, none
-    assert out.dtype == np.float32 and np.array_equal(depth.reshape(-1), (plane * (1 + off)).astype(np.float32)
-                                                      * (np.arange(plane.size) % 7 != 0))  # fmt: skip
-    # a depth map without masks: every pixel may be table
-    both = snap_to_table(depth.reshape(1, 48, 48), vm[None], K[None], bounds, 0.05).reshape(-1)
-    assert (both != depth).sum() > (out != depth).sum()
-    with pytest.raises(ValueError, match="table_snap"):
-        DepthFit(table_snap=1.0)
 
 
 def test_fitted_depth_is_written_into_the_capture(fitted):

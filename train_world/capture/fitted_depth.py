@@ -11,12 +11,6 @@ Training on the capture then starts from points back-projected from them, on eve
 bare walls included, as it does from a capture with measured depth. Unlike multi-view stereo
 (:mod:`.mvs`) the maps need no texture; they are only as right as the first fit, and serve only as the start
 (``dsg-train`` uses depth for nothing else unless ``--depth-weight`` is given).
-
-A fit's depth of the table top lies about 1 % beyond it (the first fit's table is a layer a few millimetres thick).
-The table top itself is known better: the capture's frame puts it at z = 0 from a robust plane fit to the
-structure-from-motion points (:mod:`.frame`). So on background pixels whose ray meets the table top inside its
-bounds and whose fitted depth is within ``DepthFit.table_snap`` (relative) of that meeting point,
-:func:`snap_to_table` puts the depth on the plane.
 """
 
 from __future__ import annotations
@@ -25,9 +19,6 @@ import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
-from dsg_gym.cameras import unproject
 from train_world.capture.files import read_json
 from train_world.capture.format import (
     DEPTH_SCALE,
@@ -40,7 +31,7 @@ from train_world.capture.format import (
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["DepthFit", "fit_depth_maps", "fitted_depths", "rendered_depths", "snap_to_table"]
+__all__ = ["DepthFit", "fit_depth_maps", "fitted_depths", "rendered_depths"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,8 +41,7 @@ class DepthFit:
     other settings) on the photos downscaled by the integer ``downscale`` (half their size by default); its
     depth rendered at the photos' own size from the Gaussians of opacity above ``min_opacity`` and kept where
     the render's alpha exceeds ``min_alpha``. The nearly transparent Gaussians that a fit leaves floating
-    (what is left of the random start) would pull every expected depth towards the camera. Background depth
-    within ``table_snap`` (relative) of the table top is put on it (:func:`snap_to_table`; 0: never)."""
+    (what is left of the random start) would pull every expected depth towards the camera."""
 
     steps: int = 3000
     max_gaussians: int = 60_000
@@ -59,7 +49,6 @@ class DepthFit:
     min_opacity: float = 0.2
     seed: int = 0
     downscale: int = 2
-    table_snap: float = 0.05
 
     def __post_init__(self) -> None:
         if self.steps < 100:
@@ -70,8 +59,6 @@ class DepthFit:
             raise ValueError(f"min_alpha must lie in (0, 1), got {self.min_alpha}")
         if not 0.0 <= self.min_opacity < 1.0:
             raise ValueError(f"min_opacity must lie in [0, 1), got {self.min_opacity}")
-        if not 0.0 <= self.table_snap < 1.0:
-            raise ValueError(f"table_snap must lie in [0, 1), got {self.table_snap}")
         if not (isinstance(self.downscale, int) and self.downscale >= 1):
             raise ValueError(f"a depth fit's downscale must be an integer >= 1, got {self.downscale!r}")
 
@@ -97,8 +84,6 @@ def rendered_depths(field, viewmats: torch.Tensor, Ks: torch.Tensor, width: int,
 def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: bool = False) -> torch.Tensor:
     """Depth ``[V,H,W]`` at every view of ``state`` (the order of its ``transforms.json``, the photos' size)
     from a field trained on all of them (:class:`DepthFit`)."""
-    import torch
-
     from train_world.capture.loader import load_capture
     from train_world.single_state.data import load_training_data
     from train_world.single_state.presets import TrainConfig, get_preset
@@ -110,49 +95,11 @@ def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: b
     data = load_training_data(capture, config)
     trainer = Trainer(data, config)
     trainer.train(progress=progress, label=f"depth fit {state}")
-    cap = load_capture(capture, states=[state], load_depth=False)  # the photos' own size
-    views = cap.states[state]
-    depth = rendered_depths(trainer.field, views.viewmats, views.Ks, views.width, views.height,
-                            trainer.background, fit.min_alpha, fit.min_opacity)  # fmt: skip
-    if fit.table_snap > 0 and cap.table_bounds is not None:
-        background = None if views.masks is None else views.masks.numpy() == 0
-        snapped = snap_to_table(depth.numpy(), views.viewmats.numpy(), views.Ks.numpy(), cap.table_bounds,
-                                fit.table_snap, background)  # fmt: skip
-        depth = torch.from_numpy(snapped)
-    return depth
-
-
-def snap_to_table(
-    depth: np.ndarray,
-    viewmats: np.ndarray,
-    Ks: np.ndarray,
-    bounds: np.ndarray,
-    tolerance: float,
-    background: np.ndarray | None = None,
-) -> np.ndarray:
-    """``depth [V,H,W]`` (camera z, 0 = none) with every pixel whose ray meets the table top (the plane
-    ``z = bounds[0, 2]`` of the capture's frame) inside ``bounds [2,3]``'s x-y rectangle, in front of the camera,
-    at a depth within ``tolerance`` (relative) of its own, moved onto that plane; only where ``background
-    [V,H,W]`` (bool) is true, when given. Float32, a new array; viewmats ``[V,4,4]`` world-to-camera, Ks
-    ``[V,3,3]``."""
-    V, H, W = depth.shape
-    lo, hi = np.asarray(bounds, dtype=np.float64)
-    v, u = np.mgrid[0:H, 0:W].reshape(2, -1) + 0.5
-    out = np.array(depth, dtype=np.float32)
-    for i in range(V):
-        centre = unproject(0.0, 0.0, 0.0, viewmats[i], Ks[i])[0]  # depth 0: the camera's centre
-        ray = unproject(u, v, np.ones_like(u), viewmats[i], Ks[i]) - centre  # per unit of camera z
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = (lo[2] - centre[2]) / ray[:, 2]
-        hit = centre + z[:, None] * ray
-        on = np.isfinite(z) & (z > 0)
-        on &= (hit[:, 0] >= lo[0]) & (hit[:, 0] <= hi[0]) & (hit[:, 1] >= lo[1]) & (hit[:, 1] <= hi[1])
-        d = depth[i].reshape(-1).astype(np.float64)
-        on &= (d > 0) & (np.abs(d - z) <= tolerance * np.where(on, z, 0.0))
-        if background is not None:
-            on &= background[i].reshape(-1)
-        out[i].reshape(-1)[on] = z[on]
-    return out
+    views = data  # the training views, or the photos' own size for a fit at a smaller one
+    if fit.downscale > 1:
+        views = load_capture(capture, states=[state], load_masks=False, load_depth=False).states[state]
+    return rendered_depths(trainer.field, views.viewmats, views.Ks, views.width, views.height,
+                           trainer.background, fit.min_alpha, fit.min_opacity)  # fmt: skip
 
 
 def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool = False) -> dict[str, float]:

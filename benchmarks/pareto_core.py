@@ -256,25 +256,13 @@ def load_test_states(
 
 
 def area_downsample(img: np.ndarray, width: int, height: int) -> np.ndarray:
-    """``[H,W]`` or ``[H,W,C]`` float image resized to ``width x height`` by area averaging (PIL's box
-    filter: each output pixel is the area-weighted mean of the input pixels it covers)."""
-    from PIL import Image
+    """``[H,W]`` or ``[H,W,C]`` float image resized to ``width x height`` by area averaging
+    (:func:`train_world.capture.files.area_resize`, as the capture loader downscales), float32."""
+    from train_world.capture.files import area_resize
 
-    if img.shape[:2] == (height, width):
-        return np.asarray(img, np.float32)
-    chans = img[..., None] if img.ndim == 2 else img
-    out = np.stack(
-        [
-            np.asarray(
-                Image.fromarray(np.ascontiguousarray(chans[..., c], np.float32)).resize(
-                    (width, height), Image.BOX
-                )
-            )
-            for c in range(chans.shape[-1])
-        ],
-        -1,
-    )
-    return out[..., 0] if img.ndim == 2 else out
+    a = np.asarray(img, np.float32)
+    out = area_resize(a[..., None] if a.ndim == 2 else a, (width, height))
+    return out[..., 0] if a.ndim == 2 else out
 
 
 def downsample_classes(cls: np.ndarray, num_classes: int, width: int, height: int) -> np.ndarray:

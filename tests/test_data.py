@@ -89,10 +89,8 @@ def test_view_size_is_the_size_loaded_at_downscale_one(capture_dir, small_lego):
     full = load_capture(capture_dir, states=["state2"]).states["state2"]
     assert view_size(capture_dir / "state2" / "transforms.json") == (full.width, full.height) == (32, 24)
     assert eval_view_size(capture_dir, "state2") == (32, 24)
-    assert view_size(small_lego / "transforms_train.json") == (
-        50,
-        50,
-    )  # NeRF-Blender: no extension in file_path
+    # NeRF-Blender: file_path has no extension
+    assert view_size(small_lego / "transforms_train.json") == (50, 50)
     with pytest.raises(ValueError, match="no state 'state9'"):
         eval_view_size(capture_dir, "state9")
 

@@ -185,7 +185,7 @@ def view_size(
         raise CaptureError(f"{tj}: expected an object with a non-empty 'frames' list")
     fr = meta["frames"][0]
     if not isinstance(fr, dict) or "file_path" not in fr:
-        raise CaptureError(f"{tj}: frames[0]: needs 'file_path' and 'transform_matrix'")
+        raise CaptureError(f"{tj}: frames[0]: needs 'file_path'")
     return image_size(
         _resolve(tj.parent, fr["file_path"], blender_ext, root, f"{tj}: frames[0]", "file_path")
     )

@@ -85,12 +85,10 @@ def test_load_subset_and_downscale(capture_dir):
     )  # Pillow rounds the box average to uint8
 
 
-def test_view_size_is_the_size_loaded_at_downscale_one(capture_dir, small_lego):
+def test_view_size_is_the_size_loaded_at_downscale_one(capture_dir):
     full = load_capture(capture_dir, states=["state2"]).states["state2"]
     assert view_size(capture_dir / "state2" / "transforms.json") == (full.width, full.height) == (32, 24)
     assert eval_view_size(capture_dir, "state2") == (32, 24)
-    # NeRF-Blender: file_path has no extension
-    assert view_size(small_lego / "transforms_train.json") == (50, 50)
     with pytest.raises(ValueError, match="no state 'state9'"):
         eval_view_size(capture_dir, "state9")
 
@@ -352,6 +350,7 @@ def test_load_blender(small_lego):
     white = load_blender(tj)
     black = load_blender(tj, background=(0.0, 0.0, 0.0))
     assert white.images.shape == (3, 50, 50, 3) and white.masks is None and white.depths is None
+    assert view_size(tj) == (50, 50)  # file_path without its extension
     f = 0.5 * 50 / np.tan(0.5 * meta["camera_angle_x"])
     np.testing.assert_allclose(white.Ks[0].numpy(), [[f, 0, 25], [0, f, 25], [0, 0, 1]], rtol=1e-6)
     rgba = np.asarray(Image.open(small_lego / "train" / "r_0.png"), dtype=np.float32) / 255

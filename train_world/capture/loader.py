@@ -172,6 +172,14 @@ def _intrinsics(meta: Mapping, frame: Mapping, w: int, h: int, src: str) -> np.n
     return intrinsics_matrix(*vals)
 
 
+def _read_transforms(tj: Path) -> dict:
+    """``tj``'s JSON: an object with a non-empty ``frames`` list, else a CaptureError."""
+    meta = read_json(tj)
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise CaptureError(f"{tj}: expected an object with a non-empty 'frames' list")
+    return meta
+
+
 def view_size(
     transforms_json: str | Path, *, blender_ext: str | None = ".png", root: str | Path | None = None
 ) -> tuple[int, int]:
@@ -180,9 +188,7 @@ def view_size(
     ``root`` as there."""
     tj = Path(transforms_json)
     root = tj.parent if root is None else Path(root)
-    meta = read_json(tj)
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise CaptureError(f"{tj}: expected an object with a non-empty 'frames' list")
+    meta = _read_transforms(tj)
     fr = meta["frames"][0]
     if not isinstance(fr, dict) or "file_path" not in fr:
         raise CaptureError(f"{tj}: frames[0]: needs 'file_path'")
@@ -213,9 +219,7 @@ def load_views(
     ``root``: the folder every frame's files must lie in (default: the one holding ``transforms_json``).
     """
     tj = Path(transforms_json)
-    meta = read_json(tj)
-    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
-        raise CaptureError(f"{tj}: expected an object with a non-empty 'frames' list")
+    meta = _read_transforms(tj)
     frames = meta["frames"]
     if expected_count is not None and len(frames) != expected_count:
         raise CaptureError(

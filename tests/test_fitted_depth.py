@@ -10,10 +10,12 @@ import shutil
 import numpy as np
 import pytest
 
+from dsg_gym.cameras import unproject
 from tests._captures import tiny_capture
 from train_world.capture import load_capture
 from train_world.capture.fitted_depth import DepthFit, fit_depth_maps, fitted_depths, rendered_depths
 from train_world.capture.format import DEPTH_SCALE
+from train_world.capture.points import write_points_ply
 
 FIT = DepthFit(steps=300, max_gaussians=5000, downscale=1)  # at the photos' size (the default halves it)
 
@@ -83,7 +85,9 @@ def test_faint_gaussians_do_not_pull_the_depth_nearer():
 
 
 def test_fitted_depth_is_written_into_the_capture(fitted):
-    cap, coverage = fitted
+    cap, result = fitted
+    coverage = result["coverage"]
+    assert result["floor"] is None and result["on_floor"] == {}  # no structure-from-motion points: no floor
     for s in ("state1", "state2"):
         est = load_capture(cap, [s]).states[s]
         assert est.depths is not None and est.depths.shape[0] == 16
@@ -136,6 +140,44 @@ def test_a_fit_at_half_size_gives_depth_at_the_photos_size(truth, fitted, tmp_pa
     assert not np.array_equal(half, full)  # a fit of its own
     with pytest.raises(ValueError, match="downscale must be an integer >= 1"):
         DepthFit(downscale=0)
+
+
+def _floor_points(truth, n=200):
+    """Points of the true floor (z = -0.74, below the table top at 0) beyond the table, from the truth's depth."""
+    views = load_capture(truth, ["state1"]).states["state1"]
+    pts = []
+    for i in range(len(views)):
+        d, m = views.depths[i].numpy(), views.masks[i].numpy()
+        v, u = np.nonzero((d > 0) & (m == 0))
+        pts.append(unproject(u + 0.5, v + 0.5, d[v, u], views.viewmats[i].double().numpy(),
+                             views.Ks[i].double().numpy()))  # fmt: skip
+    pts = np.concatenate(pts)
+    floor = pts[(pts[:, 2] < -0.735) & ((np.abs(pts[:, 0]) > 0.5) | (np.abs(pts[:, 1]) > 0.4))]
+    return floor[np.random.default_rng(0).choice(len(floor), n, replace=False)]
+
+
+def test_the_floor_of_the_structure_from_motion_points_takes_the_floors_depth(truth, tmp_path):
+    with_points = _strip_depth(shutil.copytree(truth, tmp_path / "on"))
+    write_points_ply(with_points / "points3d.ply", _floor_points(truth), np.full((200, 3), 128, np.uint8))
+    scene = json.loads((with_points / "scene.json").read_text())
+    (with_points / "scene.json").write_text(json.dumps({**scene, "points": {"path": "points3d.ply"}}))
+    off = shutil.copytree(with_points, tmp_path / "off")
+    result = fit_depth_maps(with_points, ["state1"], FIT)
+    assert result["floor"]["z"] == pytest.approx(-0.74, abs=2e-3) and result["floor"]["points"] == 200
+    assert fit_depth_maps(off, ["state1"], dataclasses.replace(FIT, floor_tolerance=0.0))["floor"] is None
+    views = load_capture(truth, ["state1"]).states["state1"]
+    true, masks = views.depths.numpy(), views.masks.numpy()
+    with_floor = load_capture(with_points, ["state1"]).states["state1"].depths.numpy()
+    without = load_capture(off, ["state1"]).states["state1"].depths.numpy()
+    moved = with_floor != without
+    assert result["on_floor"]["state1"] == pytest.approx(moved.mean(), abs=1e-3) and moved.mean() > 0.05
+    assert (masks[moved] == 0).all()  # background only
+    # the moved pixels: on the true floor to a few millimetres, where the fit alone was centimetres off
+    err_with = np.median(np.abs(with_floor[moved] - true[moved]) / true[moved])
+    err_without = np.median(np.abs(without[moved] - true[moved]) / true[moved])
+    assert err_with < 0.005 < err_without, (err_with, err_without)
+    with pytest.raises(ValueError, match="floor_tolerance"):
+        DepthFit(floor_tolerance=1.0)
 
 
 def test_a_capture_with_depth_is_refused_and_left_unchanged(truth):

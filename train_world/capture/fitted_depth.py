@@ -7,6 +7,9 @@ state on all of that state's views from that same start, renders the expected de
 alpha) of its Gaussians of opacity above ``min_opacity`` at every view where their alpha exceeds
 ``min_alpha``, and writes the maps into the capture (``<state>/depth/<stem>.png``, uint16 in ``DEPTH_SCALE``
 units, 0 = none; each frame of ``transforms.json`` gains its ``depth_path``).
+Where the capture has structure-from-motion points and a table top (``dsg-capture``'s), the floor they show
+(:mod:`.floor`) then takes the background depth that lies near it: a depth fit leaves even a textured floor a
+tenth of its depth off, the points pin it to a few millimetres.
 Training on the capture then starts from points back-projected from them, on every surface the photos show,
 bare walls included, as it does from a capture with measured depth. Unlike multi-view stereo
 (:mod:`.mvs`) the maps need no texture; they are only as right as the first fit, and serve only as the start
@@ -19,7 +22,10 @@ import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from train_world.capture.files import read_json
+from train_world.capture.floor import Floor, fit_floor, floor_depth
 from train_world.capture.format import (
     DEPTH_SCALE,
     atomic_write_bytes,
@@ -27,11 +33,12 @@ from train_world.capture.format import (
     depth_to_png_units,
     encode_png,
 )
+from train_world.capture.points import capture_points
 
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["DepthFit", "fit_depth_maps", "fitted_depths", "rendered_depths"]
+__all__ = ["DepthFit", "capture_floor", "fit_depth_maps", "fitted_depths", "rendered_depths"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,7 +48,8 @@ class DepthFit:
     other settings) on the photos downscaled by the integer ``downscale`` (half their size by default); its
     depth rendered at the photos' own size from the Gaussians of opacity above ``min_opacity`` and kept where
     the render's alpha exceeds ``min_alpha``. The nearly transparent Gaussians that a fit leaves floating
-    (what is left of the random start) would pull every expected depth towards the camera."""
+    (what is left of the random start) would pull every expected depth towards the camera. Background depth
+    within ``floor_tolerance`` (a fraction) of the floor is put on it (:mod:`.floor`; 0: never)."""
 
     steps: int = 3000
     max_gaussians: int = 60_000
@@ -49,6 +57,7 @@ class DepthFit:
     min_opacity: float = 0.2
     seed: int = 0
     downscale: int = 2
+    floor_tolerance: float = 0.3
 
     def __post_init__(self) -> None:
         if self.steps < 100:
@@ -61,6 +70,8 @@ class DepthFit:
             raise ValueError(f"min_opacity must lie in [0, 1), got {self.min_opacity}")
         if not (isinstance(self.downscale, int) and self.downscale >= 1):
             raise ValueError(f"a depth fit's downscale must be an integer >= 1, got {self.downscale!r}")
+        if not 0.0 <= self.floor_tolerance < 1.0:
+            raise ValueError(f"floor_tolerance must lie in [0, 1), got {self.floor_tolerance}")
 
 
 def rendered_depths(field, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
@@ -102,21 +113,58 @@ def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: b
                            trainer.background, fit.min_alpha, fit.min_opacity)  # fmt: skip
 
 
-def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool = False) -> dict[str, float]:
-    """Write :func:`fitted_depths` of each of ``states`` into the capture folder ``capture`` (module
-    docstring); returns each state's share of pixels with depth. The capture must have no depth maps yet."""
+def capture_floor(capture: str | Path) -> tuple[Floor, float] | None:
+    """The floor (:func:`.floor.fit_floor`) of the capture folder ``capture``'s structure-from-motion points
+    and table, with the length it was fitted at (the median camera distance to the table top's centre); None
+    when the capture has no points, no table bounds, or no floor in them."""
+    from train_world.capture.loader import load_capture
+
     capture = Path(capture)
-    coverage = {}
+    scene = read_json(capture / "scene.json")
+    points = capture_points(capture, scene)
+    table = scene.get("table")
+    if points is None or not isinstance(table, dict) or "bounds" not in table:
+        return None
+    cap = load_capture(capture, load_masks=False, load_depth=False)
+    bounds = np.asarray(table["bounds"], np.float64)
+    centre = np.r_[(bounds[0, :2] + bounds[1, :2]) / 2, 0.0]
+    eyes = np.concatenate([np.linalg.inv(v.viewmats.double().numpy())[:, :3, 3] for v in cap.states.values()])
+    ref = float(np.median(np.linalg.norm(eyes - centre, axis=1)))
+    floor = fit_floor(points[0], bounds, ref)
+    return None if floor is None else (floor, ref)
+
+
+def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool = False) -> dict:
+    """Write :func:`fitted_depths` of each of ``states`` into the capture folder ``capture``, the floor's
+    background put on it (module docstring). The capture must have no depth maps yet. Returns each state's
+    share of pixels with depth (``coverage``), the floor (``floor``: :meth:`.floor.Floor.to_dict`, or None)
+    and each state's share of pixels put on it (``on_floor``)."""
+    from train_world.capture.loader import load_capture
+
+    capture = Path(capture)
+    found = capture_floor(capture) if fit.floor_tolerance > 0 else None
+    coverage, on_floor = {}, {}
     for s in states:
         tj = capture / s / "transforms.json"
         doc = read_json(tj)
         frames = doc["frames"]
         if any("depth_path" in f for f in frames):
             raise ValueError(f"{tj}: the capture has depth maps already; a depth fit is for captures without")
-        depth = fitted_depths(capture, s, fit, progress=progress)
+        depth = fitted_depths(capture, s, fit, progress=progress).numpy()
         if len(depth) != len(frames):
             raise RuntimeError(f"{tj}: {len(frames)} frames but {len(depth)} depth maps")
-        units = depth_to_png_units(depth.numpy())
+        if found is not None:
+            views = load_capture(capture, states=[s], load_depth=False).states[s]
+            moved = 0
+            for i in range(len(depth)):
+                background = (
+                    views.masks[i].numpy() == 0 if views.masks is not None else np.ones_like(depth[i], bool)
+                )
+                d, m = floor_depth(depth[i], background, views.viewmats[i].double().numpy(),
+                                   views.Ks[i].double().numpy(), found[0], fit.floor_tolerance)  # fmt: skip
+                depth[i], moved = d, moved + int(m.sum())
+            on_floor[s] = round(moved / depth.size, 4)
+        units = depth_to_png_units(depth)
         for f, d in zip(frames, units, strict=True):
             rel = f"depth/{Path(f['file_path']).stem}.png"
             atomic_write_bytes(capture / s / rel, encode_png(d))
@@ -124,4 +172,8 @@ def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool
         doc["depth_unit_scale_factor"] = DEPTH_SCALE
         atomic_write_json(tj, doc)
         coverage[s] = round(float((units > 0).mean()), 4)
-    return coverage
+    return {
+        "coverage": coverage,
+        "floor": None if found is None else found[0].to_dict(),
+        "on_floor": on_floor,
+    }

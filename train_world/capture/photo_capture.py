@@ -311,8 +311,8 @@ def build_capture(
         report["fitted_depth"] = None
         if depth_fit is not None:
             say(f"depth fit: {depth_fit.steps} steps per state")
-            cover = fit_depth_maps(stage, PHOTO_STATES, depth_fit, progress=progress)
-            report["fitted_depth"] = {**dataclasses.asdict(depth_fit), "coverage": cover}
+            fitted = fit_depth_maps(stage, PHOTO_STATES, depth_fit, progress=progress)
+            report["fitted_depth"] = {**dataclasses.asdict(depth_fit), **fitted}
         t_fit = time.perf_counter() - t
         report["timings_s"] = {
             **{k: round(v, 2) for k, v in sfm.timings.items()},

@@ -113,10 +113,10 @@ def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: b
                            trainer.background, fit.min_alpha, fit.min_opacity)  # fmt: skip
 
 
-def capture_floor(capture: str | Path) -> tuple[Floor, float] | None:
+def capture_floor(capture: str | Path) -> Floor | None:
     """The floor (:func:`.floor.fit_floor`) of the capture folder ``capture``'s structure-from-motion points
-    and table, with the length it was fitted at (the median camera distance to the table top's centre); None
-    when the capture has no points, no table bounds, or no floor in them."""
+    and table, its lengths scaled by the median camera distance to the table top's centre; None when the
+    capture has no points, no table bounds, or no floor in them."""
     from train_world.capture.loader import load_capture
 
     capture = Path(capture)
@@ -130,8 +130,7 @@ def capture_floor(capture: str | Path) -> tuple[Floor, float] | None:
     centre = np.r_[(bounds[0, :2] + bounds[1, :2]) / 2, 0.0]
     eyes = np.concatenate([np.linalg.inv(v.viewmats.double().numpy())[:, :3, 3] for v in cap.states.values()])
     ref = float(np.median(np.linalg.norm(eyes - centre, axis=1)))
-    floor = fit_floor(points[0], bounds, ref)
-    return None if floor is None else (floor, ref)
+    return fit_floor(points[0], bounds, ref)
 
 
 def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool = False) -> dict:
@@ -161,7 +160,7 @@ def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool
                     views.masks[i].numpy() == 0 if views.masks is not None else np.ones_like(depth[i], bool)
                 )
                 d, m = floor_depth(depth[i], background, views.viewmats[i].double().numpy(),
-                                   views.Ks[i].double().numpy(), found[0], fit.floor_tolerance)  # fmt: skip
+                                   views.Ks[i].double().numpy(), found, fit.floor_tolerance)  # fmt: skip
                 depth[i], moved = d, moved + int(m.sum())
             on_floor[s] = round(moved / depth.size, 4)
         units = depth_to_png_units(depth)
@@ -174,6 +173,6 @@ def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool
         coverage[s] = round(float((units > 0).mean()), 4)
     return {
         "coverage": coverage,
-        "floor": None if found is None else found[0].to_dict(),
+        "floor": None if found is None else found.to_dict(),
         "on_floor": on_floor,
     }

@@ -23,7 +23,7 @@ from train_world.capture.cameras import (  # noqa: E402
     opengl_c2w_to_viewmat,
     viewmat_to_opengl_c2w,
 )
-from train_world.capture.loader import view_size  # noqa: E402
+from train_world.capture.loader import frame_poses, view_size  # noqa: E402
 from train_world.single_state.data import eval_view_size  # noqa: E402
 from train_world.synth.generate import GenerateConfig, generate_scene  # noqa: E402
 
@@ -91,6 +91,16 @@ def test_view_size_is_the_size_loaded_at_downscale_one(capture_dir):
     assert eval_view_size(capture_dir, "state2") == (32, 24)
     with pytest.raises(ValueError, match="no state 'state9'"):
         eval_view_size(capture_dir, "state9")
+
+
+def test_frame_poses_are_the_loaded_poses_without_the_images(capture_dir, tmp_path):
+    tj = capture_dir / "state2" / "transforms.json"
+    full = load_capture(capture_dir, states=["state2"]).states["state2"]
+    np.testing.assert_array_equal(frame_poses(tj), full.c2w_opengl)
+    # images are not read: the poses of a copy of transforms.json without its images are the same
+    lone = tmp_path / "transforms.json"
+    lone.write_text(tj.read_text())
+    np.testing.assert_array_equal(frame_poses(lone), full.c2w_opengl)
 
 
 def test_cameras_are_opencv_world_to_camera(capture_dir):
@@ -241,6 +251,9 @@ def test_non_finite_or_non_rigid_camera_pose(broken, bad):
     ) as e:
         load_capture(broken)
     assert ("non-finite" in str(e.value)) == (bad == "nan")
+    with pytest.raises(CaptureError) as e2:
+        frame_poses(tj)
+    assert str(e2.value) == str(e.value)
 
 
 def test_non_rigid_object_pose(broken):

@@ -117,7 +117,7 @@ def capture_floor(capture: str | Path) -> Floor | None:
     """The floor (:func:`.floor.fit_floor`) of the capture folder ``capture``'s structure-from-motion points
     and table, its lengths scaled by the median camera distance to the table top's centre; None when the
     capture has no points, no table bounds, or no floor in them."""
-    from train_world.capture.loader import load_capture
+    from train_world.capture.loader import frame_poses
 
     capture = Path(capture)
     scene = read_json(capture / "scene.json")
@@ -125,10 +125,10 @@ def capture_floor(capture: str | Path) -> Floor | None:
     table = scene.get("table")
     if points is None or not isinstance(table, dict) or "bounds" not in table:
         return None
-    cap = load_capture(capture, load_masks=False, load_depth=False)
     bounds = np.asarray(table["bounds"], np.float64)
     centre = np.r_[(bounds[0, :2] + bounds[1, :2]) / 2, 0.0]
-    eyes = np.concatenate([np.linalg.inv(v.viewmats.double().numpy())[:, :3, 3] for v in cap.states.values()])
+    states = scene.get("states") or {p.parent.name: {} for p in sorted(capture.glob("*/transforms.json"))}
+    eyes = np.concatenate([frame_poses(capture / s / "transforms.json")[:, :3, 3] for s in states])
     ref = float(np.median(np.linalg.norm(eyes - centre, axis=1)))
     return fit_floor(points[0], bounds, ref)
 

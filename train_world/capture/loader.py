@@ -33,6 +33,7 @@ __all__ = [
     "CaptureError",
     "ObjectInfo",
     "Views",
+    "frame_poses",
     "load_blender",
     "load_capture",
     "load_views",
@@ -180,6 +181,26 @@ def _read_transforms(tj: Path) -> dict:
     return meta
 
 
+def _frame_c2w(fr: Any, where: str, rigid_tol: float) -> np.ndarray:
+    """A frame's ``transform_matrix`` ``[4,4]`` float64, checked rigid; a CaptureError naming ``where``."""
+    if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
+        raise CaptureError(f"{where}: needs 'file_path' and 'transform_matrix'")
+    try:
+        return check_rigid(
+            np.asarray(fr["transform_matrix"], dtype=np.float64), f"{where}.transform_matrix", rigid_tol
+        )
+    except (TypeError, ValueError) as e:
+        raise CaptureError(str(e) if str(e).startswith(where) else f"{where}.transform_matrix: {e}") from e
+
+
+def frame_poses(transforms_json: str | Path, *, rigid_tol: float = 1e-4) -> np.ndarray:
+    """The frames' ``transform_matrix`` values ``[V,4,4]`` float64 (camera-to-world, OpenGL axes; the
+    camera centres are ``[:, :3, 3]``), checked as :func:`load_views` checks them, without reading an image."""
+    tj = Path(transforms_json)
+    frames = _read_transforms(tj)["frames"]
+    return np.stack([_frame_c2w(fr, f"{tj}: frames[{i}]", rigid_tol) for i, fr in enumerate(frames)])
+
+
 def view_size(
     transforms_json: str | Path, *, blender_ext: str | None = ".png", root: str | Path | None = None
 ) -> tuple[int, int]:
@@ -240,16 +261,7 @@ def load_views(
     size = None
     for i, fr in enumerate(frames):
         where = f"{tj}: frames[{i}]"
-        if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
-            raise CaptureError(f"{where}: needs 'file_path' and 'transform_matrix'")
-        try:
-            c2w = check_rigid(
-                np.asarray(fr["transform_matrix"], dtype=np.float64), f"{where}.transform_matrix", rigid_tol
-            )
-        except (TypeError, ValueError) as e:
-            raise CaptureError(
-                str(e) if str(e).startswith(str(tj)) else f"{where}.transform_matrix: {e}"
-            ) from e
+        c2w = _frame_c2w(fr, where, rigid_tol)
         ipath = _resolve(base, fr["file_path"], blender_ext, root, where, "file_path")
         rgb, (full_w, full_h) = read_rgb(ipath, background, downscale)
         h, w = rgb.shape[:2]

@@ -214,6 +214,7 @@ def test_dsg_capture_fits_depth_by_default(tmp_path, capsys, monkeypatch):
         [],
         ["--fit-steps", "1500"],
         ["--fit-downscale", "1"],
+        ["--floor-tolerance", "0"],
         ["--depth", "stereo"],
         ["--depth", "none"],
     ):
@@ -222,6 +223,7 @@ def test_dsg_capture_fits_depth_by_default(tmp_path, capsys, monkeypatch):
         (False, DepthFit()),
         (False, DepthFit(steps=1500)),
         (False, DepthFit(downscale=1)),
+        (False, DepthFit(floor_tolerance=0.0)),
         (True, None),
         (False, None),
     ]
@@ -235,6 +237,9 @@ def test_bad_depth_options_are_refused(tmp_path, capsys):
         (["--fit-steps", "5"], "at least 100 steps"),
         (["--depth", "none", "--fit-downscale", "2"], "--fit-downscale is for --depth fit, not --depth none"),
         (["--fit-downscale", "0"], "--fit-downscale must be an integer >= 1"),
+        (["--depth", "stereo", "--floor-tolerance", "0.2"], "--floor-tolerance is for --depth fit, not"),
+        (["--floor-tolerance", "1"], "--floor-tolerance must lie in [0, 1) (0: never), got 1.0"),
+        (["--floor-tolerance", "nan"], "--floor-tolerance must lie in [0, 1)"),
         (["--depth", "lidar"], "invalid choice: 'lidar'"),
         (["--max-size", "8"], "--max-size must be at least 16 pixels"),
     ):

@@ -99,6 +99,15 @@ def _parser() -> argparse.ArgumentParser:
         f"integer N (its depth is still rendered at their size; default {DepthFit.downscale})",
     )
     p.add_argument(
+        "--floor-tolerance",
+        type=float,
+        default=None,
+        metavar="F",
+        help="with --depth fit: background depth within the fraction F of the floor that the structure-from-"
+        "motion points show below the table is put on that floor (0: never; default "
+        f"{DepthFit.floor_tolerance})",
+    )
+    p.add_argument(
         "--max-size",
         type=int,
         default=None,
@@ -114,8 +123,13 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _depth_fit(args: argparse.Namespace) -> DepthFit:
-    """The :class:`DepthFit` of ``--fit-steps`` and ``--fit-downscale`` (its defaults where not given)."""
-    given = {"steps": args.fit_steps, "downscale": args.fit_downscale}
+    """The :class:`DepthFit` of ``--fit-steps``, ``--fit-downscale`` and ``--floor-tolerance`` (its defaults
+    where not given)."""
+    given = {
+        "steps": args.fit_steps,
+        "downscale": args.fit_downscale,
+        "floor_tolerance": args.floor_tolerance,
+    }
     return DepthFit(**{k: v for k, v in given.items() if v is not None})
 
 
@@ -128,11 +142,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--out is required (or --extract-frames N to sample videos to frames)")
     if args.marker_size is not None and args.metres_per_unit is not None:
         parser.error("give the scale once: --marker-size or --metres-per-unit")
-    for flag, value in (("--fit-steps", args.fit_steps), ("--fit-downscale", args.fit_downscale)):
+    for flag, value in (
+        ("--fit-steps", args.fit_steps),
+        ("--fit-downscale", args.fit_downscale),
+        ("--floor-tolerance", args.floor_tolerance),
+    ):
         if value is not None and args.depth != "fit":
             parser.error(f"{flag} is for --depth fit, not --depth {args.depth}")
     if args.fit_downscale is not None and args.fit_downscale < 1:
         parser.error(f"--fit-downscale must be an integer >= 1, got {args.fit_downscale}")
+    if args.floor_tolerance is not None and not 0.0 <= args.floor_tolerance < 1.0:
+        parser.error(f"--floor-tolerance must lie in [0, 1) (0: never), got {args.floor_tolerance}")
     if args.max_size is not None and args.max_size < 16:
         parser.error(f"--max-size must be at least 16 pixels, got {args.max_size}")
     if args.fit_steps is not None and args.fit_steps < 100:

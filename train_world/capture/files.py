@@ -71,7 +71,7 @@ def label_resize(ids: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     factor ``k``, each output pixel takes the id most of its ``k x k`` block shows; otherwise the id under the
     output pixel's centre. A tie goes to the lowest of the tied ids where the output pixel's ``x + y`` is even
     and to the highest where it is odd: a block split evenly by an outline gives no side, and a fixed rule
-    (the lower id, the background) would shrink every object by a quarter of an output pixel at ``k = 2``.
+    (the lower id, the background) would move every object's outline inwards.
     (Pillow's nearest pixel, by an even factor, takes a pixel half an input pixel off the block's centre,
     which shifts every outline.)"""
     a = np.asarray(ids)

@@ -13,11 +13,19 @@ import pytest
 from dsg_gym.cameras import unproject
 from tests._captures import tiny_capture
 from train_world.capture import load_capture
-from train_world.capture.fitted_depth import DepthFit, fit_depth_maps, fitted_depths, rendered_depths
+from train_world.capture.fitted_depth import (
+    DepthFit,
+    drop_depth_jumps,
+    fit_depth_maps,
+    fitted_depths,
+    jump_limits,
+    rendered_depths,
+)
 from train_world.capture.format import DEPTH_SCALE
 from train_world.capture.points import write_points_ply
 
-FIT = DepthFit(steps=300, max_gaussians=5000, downscale=1)  # at the photos' size (the default halves it)
+# at the photos' size (the default halves it); the maps as fitted, no jumps dropped (a test of its own below)
+FIT = DepthFit(steps=300, max_gaussians=5000, downscale=1, edge_angle_deg=0.0)
 
 
 def _strip_depth(capture):
@@ -88,6 +96,7 @@ def test_fitted_depth_is_written_into_the_capture(fitted):
     cap, result = fitted
     coverage = result["coverage"]
     assert result["floor"] is None and result["on_floor"] == {}  # no structure-from-motion points: no floor
+    assert result["dropped"] == {}  # edge_angle_deg 0
     for s in ("state1", "state2"):
         est = load_capture(cap, [s]).states[s]
         assert est.depths is not None and est.depths.shape[0] == 16
@@ -180,6 +189,64 @@ def test_the_floor_of_the_structure_from_motion_points_takes_the_floors_depth(tr
         DepthFit(floor_tolerance=1.0)
 
 
+def test_jump_limits_are_a_plane_seen_at_the_edge_angle():
+    K = np.array([[200.0, 0.0, 64.0], [0.0, 100.0, 64.0], [0.0, 0.0, 1.0]])
+    for deg in (2.0, 5.0, 30.0):
+        ly, lx = jump_limits(K, deg)
+        for f, limit in ((100.0, ly), (200.0, lx)):
+            # the depth along two rays 1/f apart to a plane that the first meets at `deg` from edge-on
+            a, p = np.radians(deg), 1.0 / f
+            d0, d1 = 1.0 / np.sin(a), 1.0 / np.sin(a + p)  # distance to the plane y = 1 along each ray
+            assert limit == pytest.approx(d0 / d1 - 1.0, rel=1e-12) and limit > 0
+    assert jump_limits(K, 5.0)[0] > jump_limits(K, 10.0)[0]  # a larger angle: stricter
+    # nearly in proportion to the pixel's angle
+    assert jump_limits(K, 5.0)[0] == pytest.approx(2 * jump_limits(K, 5.0)[1], rel=0.05)
+
+
+def test_depth_jumps_are_dropped_on_both_sides_and_slopes_kept():
+    # a ramp that deepens by 2 % a pixel (a floor at a grazing angle), a step of 50 % at column 6, a hole
+    d = (1.02 ** np.arange(12, dtype=np.float32))[None, :].repeat(8, 0)
+    d[:, 6:] *= 1.5
+    d[4, 2] = 0.0
+    before = d.copy()
+    out = drop_depth_jumps(d, (0.05, 0.05))
+    assert np.array_equal(d, before)  # the input is left as it was
+    dropped = (out == 0) & (d > 0)
+    assert dropped[:, 5].all() and dropped[:, 6].all()  # both sides of the step
+    assert dropped[3, 2] and dropped[5, 2] and dropped[4, 1] and dropped[4, 3]  # the hole's 4-neighbours
+    assert dropped.sum() == 16 + 4 and np.array_equal(out[~dropped], d[~dropped])  # nothing else: the slope,
+    assert out[0, 0] > 0 and out[7, 11] > 0  # the image's border
+    assert (drop_depth_jumps(d, (0.05, 0.6)) == 0).sum() == 1 + 4  # a step under the limit stays
+    assert (drop_depth_jumps(d, (0.05, 0.01)) > 0).sum() == 0  # the slope too steep for 1 %: all of it
+    # the limits' order: rows, then columns
+    assert (drop_depth_jumps(d.T, (0.05, 0.6)) > 0).sum() == 12 * 8 - 16 - 5
+    with pytest.raises(ValueError, match="edge_angle_deg"):
+        DepthFit(edge_angle_deg=90.0)
+
+
+def test_the_fit_drops_its_blended_depth_at_outlines(truth, fitted, tmp_path):
+    cap, _ = fitted
+    jumps = _strip_depth(shutil.copytree(truth, tmp_path / "jumps"))
+    result = fit_depth_maps(jumps, ["state1"], dataclasses.replace(FIT, edge_angle_deg=5.0))
+    views = load_capture(jumps, ["state1"]).states["state1"]
+    kept = views.depths.numpy()
+    whole = load_capture(cap, ["state1"]).states["state1"].depths.numpy()  # the same fit, nothing dropped
+    limits = [jump_limits(K.numpy(), 5.0) for K in views.Ks]
+    again = np.stack([drop_depth_jumps(d, lim) for d, lim in zip(whole, limits, strict=True)])
+    # the same pixels kept, but where the stored maps' 1 mm rounding carries a jump across the limit
+    assert np.array_equal(kept[(kept > 0) & (again > 0)], again[(kept > 0) & (again > 0)])
+    assert ((kept > 0) != (again > 0)).mean() < 0.005
+    gone = (whole > 0) & (kept == 0)
+    assert result["dropped"]["state1"] == pytest.approx(gone.mean(), abs=1e-4) and 0.01 < gone.mean() < 0.5
+    assert result["coverage"]["state1"] == pytest.approx((kept > 0).mean(), abs=1e-4)
+    # the depths dropped are the fit's worst: off by far more than those kept
+    true = load_capture(truth, ["state1"]).states["state1"].depths.numpy()
+    err = np.abs(whole - true) / np.maximum(true, 1e-6)
+    ok = (true > 0) & (whole > 0)
+    worst, rest = np.median(err[gone & ok]), np.median(err[~gone & ok])
+    assert worst > 2 * rest, (worst, rest)
+
+
 def test_a_capture_with_depth_is_refused_and_left_unchanged(truth):
     before = (truth / "state1" / "transforms.json").read_bytes()
     with pytest.raises(ValueError, match="has depth maps already"):
@@ -215,6 +282,7 @@ def test_dsg_capture_fits_depth_by_default(tmp_path, capsys, monkeypatch):
         ["--fit-steps", "1500"],
         ["--fit-downscale", "1"],
         ["--floor-tolerance", "0"],
+        ["--edge-angle", "10"],
         ["--depth", "stereo"],
         ["--depth", "none"],
     ):
@@ -224,6 +292,7 @@ def test_dsg_capture_fits_depth_by_default(tmp_path, capsys, monkeypatch):
         (False, DepthFit(steps=1500)),
         (False, DepthFit(downscale=1)),
         (False, DepthFit(floor_tolerance=0.0)),
+        (False, DepthFit(edge_angle_deg=10.0)),
         (True, None),
         (False, None),
     ]
@@ -240,6 +309,8 @@ def test_bad_depth_options_are_refused(tmp_path, capsys):
         (["--depth", "stereo", "--floor-tolerance", "0.2"], "--floor-tolerance is for --depth fit, not"),
         (["--floor-tolerance", "1"], "--floor-tolerance must lie in [0, 1) (0: never), got 1.0"),
         (["--floor-tolerance", "nan"], "--floor-tolerance must lie in [0, 1)"),
+        (["--depth", "none", "--edge-angle", "5"], "--edge-angle is for --depth fit, not --depth none"),
+        (["--edge-angle", "90"], "--edge-angle must lie in [0, 90) degrees (0: never), got 90.0"),
         (["--depth", "lidar"], "invalid choice: 'lidar'"),
         (["--max-size", "8"], "--max-size must be at least 16 pixels"),
     ):

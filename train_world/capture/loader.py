@@ -33,6 +33,7 @@ __all__ = [
     "CaptureError",
     "ObjectInfo",
     "Views",
+    "capture_states",
     "frame_poses",
     "load_blender",
     "load_capture",
@@ -394,6 +395,15 @@ def _check_format(meta: Mapping, src: Path) -> None:
         )
 
 
+def capture_states(root: Path, meta: Mapping) -> Any:
+    """``scene.json``'s ``states`` (``meta``) of the capture folder ``root``; without them, every folder of
+    ``root`` holding a ``transforms.json``, by name, each with an empty description."""
+    states = meta.get("states")
+    if states is None:
+        states = {p.parent.name: {} for p in sorted(root.glob("*/transforms.json"))}
+    return states
+
+
 def load_capture(
     path: str | Path,
     states: Sequence[str] | None = None,
@@ -412,9 +422,7 @@ def load_capture(
         raise CaptureError(f"{src}: expected a JSON object")
     _check_format(meta, src)
     objects = _objects(meta, src)
-    state_meta = meta.get("states")
-    if state_meta is None:
-        state_meta = {p.parent.name: {} for p in sorted(root.glob("*/transforms.json"))}
+    state_meta = capture_states(root, meta)
     if not isinstance(state_meta, dict) or not state_meta:
         raise CaptureError(f"{src}: 'states' must map state names to their description")
     names = list(state_meta) if states is None else list(states)

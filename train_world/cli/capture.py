@@ -108,6 +108,15 @@ def _parser() -> argparse.ArgumentParser:
         f"{DepthFit.floor_tolerance})",
     )
     p.add_argument(
+        "--edge-angle",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="with --depth fit: drop the fitted depth where it changes from a neighbouring pixel's faster than on "
+        "a surface seen DEG degrees from edge-on, the depths a fit blends across an object's outline (0: never; "
+        f"default {DepthFit.edge_angle_deg})",
+    )
+    p.add_argument(
         "--max-size",
         type=int,
         default=None,
@@ -123,12 +132,13 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _depth_fit(args: argparse.Namespace) -> DepthFit:
-    """The :class:`DepthFit` of ``--fit-steps``, ``--fit-downscale`` and ``--floor-tolerance`` (its defaults
-    where not given)."""
+    """The :class:`DepthFit` of ``--fit-steps``, ``--fit-downscale``, ``--floor-tolerance`` and
+    ``--edge-angle`` (its defaults where not given)."""
     given = {
         "steps": args.fit_steps,
         "downscale": args.fit_downscale,
         "floor_tolerance": args.floor_tolerance,
+        "edge_angle_deg": args.edge_angle,
     }
     return DepthFit(**{k: v for k, v in given.items() if v is not None})
 
@@ -146,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         ("--fit-steps", args.fit_steps),
         ("--fit-downscale", args.fit_downscale),
         ("--floor-tolerance", args.floor_tolerance),
+        ("--edge-angle", args.edge_angle),
     ):
         if value is not None and args.depth != "fit":
             parser.error(f"{flag} is for --depth fit, not --depth {args.depth}")
@@ -153,6 +164,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--fit-downscale must be an integer >= 1, got {args.fit_downscale}")
     if args.floor_tolerance is not None and not 0.0 <= args.floor_tolerance < 1.0:
         parser.error(f"--floor-tolerance must lie in [0, 1) (0: never), got {args.floor_tolerance}")
+    if args.edge_angle is not None and not 0.0 <= args.edge_angle < 90.0:
+        parser.error(f"--edge-angle must lie in [0, 90) degrees (0: never), got {args.edge_angle}")
     if args.max_size is not None and args.max_size < 16:
         parser.error(f"--max-size must be at least 16 pixels, got {args.max_size}")
     if args.fit_steps is not None and args.fit_steps < 100:

@@ -24,8 +24,7 @@ from train_world.capture.fitted_depth import (
 from train_world.capture.format import DEPTH_SCALE
 from train_world.capture.points import write_points_ply
 
-# at the photos' size (the default halves it); the maps as fitted, no jumps dropped (a test of its own below)
-FIT = DepthFit(steps=300, max_gaussians=5000, downscale=1, edge_angle_deg=0.0)
+FIT = DepthFit(steps=300, max_gaussians=5000, downscale=1)  # at the photos' size (the default halves it)
 
 
 def _strip_depth(capture):
@@ -96,7 +95,7 @@ def test_fitted_depth_is_written_into_the_capture(fitted):
     cap, result = fitted
     coverage = result["coverage"]
     assert result["floor"] is None and result["on_floor"] == {}  # no structure-from-motion points: no floor
-    assert result["dropped"] == {}  # edge_angle_deg 0
+    assert result["dropped"] == {} and DepthFit().edge_angle_deg == 0.0  # no jumps dropped by default
     for s in ("state1", "state2"):
         est = load_capture(cap, [s]).states[s]
         assert est.depths is not None and est.depths.shape[0] == 16

@@ -9,10 +9,10 @@ alpha) of its Gaussians of opacity above ``min_opacity`` at every view where the
 units, 0 = none; each frame of ``transforms.json`` gains its ``depth_path``).
 Where the capture has structure-from-motion points and a table top (``dsg-capture``'s), the floor they show
 (:mod:`.floor`) then takes the background depth that lies near it: a depth fit leaves even a textured floor a
-tenth of its depth off, the points pin it to a few millimetres. Last, every depth that differs from a
-4-neighbour's by more than a surface seen ``edge_angle_deg`` from edge-on would, or borders a pixel without
-depth, is dropped (:func:`drop_depth_jumps`): a fit blends the near and the far side of an outline into depths
-between them, points in the air that training would otherwise start from.
+tenth of its depth off, the points pin it to a few millimetres. Last, with ``edge_angle_deg`` above 0, every
+depth that differs from a 4-neighbour's by more than on a surface seen that many degrees from edge-on, or
+borders a pixel without depth, is dropped (:func:`drop_depth_jumps`): a fit blends the near and the far side of
+an outline into depths between them, points in the air that training would otherwise start from.
 Training on the capture then starts from points back-projected from them, on every surface the photos show,
 bare walls included, as it does from a capture with measured depth. Unlike multi-view stereo
 (:mod:`.mvs`) the maps need no texture; they are only as right as the first fit, and serve only as the start
@@ -62,7 +62,7 @@ class DepthFit:
     (what is left of the random start) would pull every expected depth towards the camera. Background depth
     within ``floor_tolerance`` (a fraction) of the floor is put on it (:mod:`.floor`; 0: never); depth at a
     jump to a neighbour steeper than a surface seen ``edge_angle_deg`` degrees from edge-on is dropped
-    (:func:`drop_depth_jumps`; 0: never)."""
+    (:func:`drop_depth_jumps`; 0, the default: never)."""
 
     steps: int = 3000
     max_gaussians: int = 60_000
@@ -71,7 +71,7 @@ class DepthFit:
     seed: int = 0
     downscale: int = 2
     floor_tolerance: float = 0.3
-    edge_angle_deg: float = 5.0
+    edge_angle_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.steps < 100:

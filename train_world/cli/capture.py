@@ -113,8 +113,8 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         metavar="DEG",
         help="with --depth fit: drop the fitted depth where it changes from a neighbouring pixel's faster than on "
-        "a surface seen DEG degrees from edge-on, the depths a fit blends across an object's outline (0: never; "
-        f"default {DepthFit.edge_angle_deg})",
+        "a surface seen DEG degrees from edge-on, the depths a fit blends across an object's outline, e.g. 5 "
+        f"(default {DepthFit.edge_angle_deg:g}: keep them)",
     )
     p.add_argument(
         "--max-size",

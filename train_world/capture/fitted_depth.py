@@ -194,7 +194,9 @@ def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool
         depth = fitted_depths(capture, s, fit, progress=progress).numpy()
         if len(depth) != len(frames):
             raise RuntimeError(f"{tj}: {len(frames)} frames but {len(depth)} depth maps")
-        views = load_capture(capture, states=[s], load_depth=False).states[s]
+        views = None  # the state's masks and intrinsics, needed only for the floor and the jumps
+        if found is not None or fit.edge_angle_deg > 0:
+            views = load_capture(capture, states=[s], load_depth=False).states[s]
         if found is not None:
             moved = 0
             for i in range(len(depth)):

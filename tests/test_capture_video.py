@@ -167,3 +167,16 @@ def test_bad_videos(tmp_path, capsys):
         extract_frames(state, 2, progress=False)
     assert capture_cli.main([str(tmp_path / "p"), "--extract-frames", "3", "--quiet"]) == 2
     assert capsys.readouterr().err.strip().startswith("dsg-capture: error: ")
+
+
+def test_structure_from_motion_runs_every_step_on_one_thread():
+    """Extraction, matching and mapping on one thread each: on several, their results follow the threads'
+    timing, and a capture would not repeat bit for bit."""
+    import pycolmap
+
+    from train_world.capture.sfm import _options
+
+    extraction, matching, verification, mapping = _options(pycolmap)
+    assert extraction.num_threads == matching.num_threads == mapping.num_threads == 1
+    assert mapping.mapper.num_threads == 1
+    assert verification.ransac.random_seed == mapping.random_seed >= 0

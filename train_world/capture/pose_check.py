@@ -42,7 +42,7 @@ FEATURES = ("all", "object", "background")
 
 
 def estimate_state_poses(
-    capture: str | Path, state: str, work: str | Path, features: str = "all", num_threads: int = -1
+    capture: str | Path, state: str, work: str | Path, features: str = "all"
 ) -> PoseEstimate:
     """Reconstruct the cameras of ``state`` of the capture folder ``capture`` from its images (``work``: an
     empty scratch folder). ``features``: where features are detected: ``"all"``; ``"object"`` (inside the
@@ -71,7 +71,7 @@ def estimate_state_poses(
             )
         names.append(f"{path.stem}.png")
         shipped[path.stem] = np.asarray(c2w_gl, np.float64) @ GL_TO_CV
-    extraction, matching, verification, mapping = _options(pycolmap, num_threads)
+    extraction, matching, verification, mapping = _options(pycolmap)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = CAMERA_MODEL
     if features != "all":

@@ -9,7 +9,8 @@ at least :data:`MIN_REGISTERED` of each state's photos must be in it.
 
 Poses come out as OpenCV world-to-camera matrices ``[4,4]`` (float64) in the reconstruction's arbitrary
 frame and scale; points are the background's 3D points ``[N,3]``. Deterministic for a given input (seeded
-RANSAC and mapper).
+RANSAC and mapper; extraction, matching and mapping each on one thread, as their results on several threads
+depend on the threads' timing).
 
 Import numpy and Pillow before pycolmap (pycolmap first, then writing a PNG, aborts the process).
 """
@@ -188,13 +189,13 @@ def sequence_pairs(capture: PhotoCapture, overlap: int = SEQUENCE_OVERLAP, cross
     return sorted((min(p), max(p)) for p in pairs)
 
 
-def _options(pycolmap, num_threads: int):
+def _options(pycolmap):
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = 1  # one thread: with more, image ids follow completion order (not deterministic)
     extraction.max_image_size = MAX_FEATURE_IMAGE_SIZE
     extraction.use_gpu = False
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = num_threads
+    matching.num_threads = 1  # one thread: with more, the matches differ now and then when the cores are busy
     matching.use_gpu = False
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = SEED
@@ -241,7 +242,6 @@ def run_sfm(
     *,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
-    num_threads: int = -1,
     min_registered: float = MIN_REGISTERED,
 ) -> SfmResult:
     """Reconstruct the cameras of both states of ``capture`` jointly; ``work`` is an empty scratch folder.
@@ -261,7 +261,7 @@ def run_sfm(
     timings["prepare_s"] = time.perf_counter() - t0
     sizes = {capture.size(s) for s in PHOTO_STATES}
     mode = pycolmap.CameraMode.SINGLE if len(sizes) == 1 else pycolmap.CameraMode.PER_FOLDER
-    extraction, matching, verification, mapping = _options(pycolmap, num_threads)
+    extraction, matching, verification, mapping = _options(pycolmap)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = CAMERA_MODEL
     reader.mask_path = str(mask_dir)

@@ -146,6 +146,11 @@ def test_a_fit_at_half_size_gives_depth_at_the_photos_size(truth, fitted, tmp_pa
     # 300 steps at 32x32 (16x16) are far from converged: the full-size fit is 16 % off, the half-size one 34 %
     assert err_half < 3 * err_full < 0.6, (err_full, err_half)
     assert not np.array_equal(half, full)  # a fit of its own
+    # the caller's full-size views (as fit_depth_maps passes, with masks) give the same maps bit for bit
+    views = load_capture(again, ["state1"], load_depth=False).states["state1"]
+    assert np.array_equal(
+        fitted_depths(again, "state1", dataclasses.replace(FIT, downscale=2), views=views).numpy(), half
+    )
     with pytest.raises(ValueError, match="downscale must be an integer >= 1"):
         DepthFit(downscale=0)
 

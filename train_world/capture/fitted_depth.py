@@ -108,9 +108,13 @@ def rendered_depths(field, viewmats: torch.Tensor, Ks: torch.Tensor, width: int,
     return out
 
 
-def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: bool = False) -> torch.Tensor:
+def fitted_depths(
+    capture: str | Path, state: str, fit: DepthFit, *, progress: bool = False, views=None
+) -> torch.Tensor:
     """Depth ``[V,H,W]`` at every view of ``state`` (the order of its ``transforms.json``, the photos' size)
-    from a field trained on all of them (:class:`DepthFit`)."""
+    from a field trained on all of them (:class:`DepthFit`). ``views``: the state's views at the photos' size
+    (:class:`.loader.Views`, only their cameras are read), when the caller has them loaded already; otherwise
+    the training views, or for a fit at a smaller size the capture's views loaded here."""
     from train_world.capture.loader import load_capture
     from train_world.single_state.data import load_training_data
     from train_world.single_state.presets import TrainConfig, get_preset
@@ -122,9 +126,10 @@ def fitted_depths(capture: str | Path, state: str, fit: DepthFit, *, progress: b
     data = load_training_data(capture, config)
     trainer = Trainer(data, config)
     trainer.train(progress=progress, label=f"depth fit {state}")
-    views = data  # the training views, or the photos' own size for a fit at a smaller one
-    if fit.downscale > 1:
-        views = load_capture(capture, states=[state], load_masks=False, load_depth=False).states[state]
+    if views is None:
+        views = data  # the training views, or the photos' own size for a fit at a smaller one
+        if fit.downscale > 1:
+            views = load_capture(capture, states=[state], load_masks=False, load_depth=False).states[state]
     return rendered_depths(trainer.field, views.viewmats, views.Ks, views.width, views.height,
                            trainer.background, fit.min_alpha, fit.min_opacity)  # fmt: skip
 
@@ -191,12 +196,12 @@ def fit_depth_maps(capture: str | Path, states, fit: DepthFit, *, progress: bool
         frames = doc["frames"]
         if any("depth_path" in f for f in frames):
             raise ValueError(f"{tj}: the capture has depth maps already; a depth fit is for captures without")
-        depth = fitted_depths(capture, s, fit, progress=progress).numpy()
-        if len(depth) != len(frames):
-            raise RuntimeError(f"{tj}: {len(frames)} frames but {len(depth)} depth maps")
         views = None  # the state's masks and intrinsics, needed only for the floor and the jumps
         if found is not None or fit.edge_angle_deg > 0:
             views = load_capture(capture, states=[s], load_depth=False).states[s]
+        depth = fitted_depths(capture, s, fit, progress=progress, views=views).numpy()
+        if len(depth) != len(frames):
+            raise RuntimeError(f"{tj}: {len(frames)} frames but {len(depth)} depth maps")
         if found is not None:
             moved = 0
             for i in range(len(depth)):

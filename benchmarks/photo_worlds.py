@@ -28,11 +28,12 @@ evaluations always run again.
 
 Writes ``{config, scenes: {S: {capture_s, train_s, photos_to_world_min, peak_rss_gib, photo: {psnr, ssim,
 mask_iou, psnr_unaligned}, reference: {...}, gap_db, gap_db_unaligned, motions: {object: {estimate_mm,
-estimate_rotation_deg, estimate_rotation_mod_symmetry_deg, refined_...}},
+estimate_rotation_deg, estimate_rotation_mod_symmetry_deg, estimate_px, refined_...}},
 camera_refinement: {state: {rotation_deg_median, ...}}}}, summary: {mean_gap_db,
 mean_gap_db_unaligned, worst_gap_db, worst_estimate_mm, ..., slowest_min, mean_photo_psnr,
 mean_reference_psnr}, targets}``. The motions are the photo world's against the ground truth's (``dsg-eval``'s
-``motion_errors``): as ``dsg-capture`` estimated them and as the joint phase refined them.
+``motion_errors``): as ``dsg-capture`` estimated them and as the joint phase refined them; ``*_px`` is how
+far the error moves the object's surface in the truth's views, at most.
 ``gap_db`` is the reference's PSNR minus the photo world's. Times depend on the machine and its load: run it
 on an idle machine.
 """
@@ -68,8 +69,10 @@ def _worst_motions(results: dict[str, Any]) -> dict[str, float]:
         "estimate_rotation_mod_symmetry_deg",
         "refined_mm",
         "refined_rotation_mod_symmetry_deg",
+        "estimate_px",
+        "refined_px",
     ):
-        vals = [o[k] for o in objs if k in o]
+        vals = [o[k] for o in objs if o.get(k) is not None]
         if vals:
             out[f"worst_{k}"] = max(vals)
     return out
@@ -169,7 +172,9 @@ def scene(name: str, work: Path, synth_args: list[str], train_args: list[str], m
     if errors is not None:
         motions = {
             o["name"]: {
-                k: round(v, 4) for k, v in o.items() if k != "name" and not k.endswith("_translation")
+                k: None if v is None else round(v, 4)
+                for k, v in o.items()
+                if k != "name" and not k.endswith("_translation")
             }
             for o in errors["objects"]
         }

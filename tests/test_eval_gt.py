@@ -19,6 +19,7 @@ from PIL import Image
 from dsg_gym.cameras import Cameras, look_at
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.world import World, load_world, write_world
+from train_world.capture import load_capture
 from train_world.cli import train as train_cli
 from train_world.cli.eval import main as eval_main
 from train_world.eval.evaluate import evaluate, evaluate_test_states
@@ -358,6 +359,20 @@ def test_motion_errors_against_the_ground_truth(trained, tmp_path):
     assert e[0]["estimate_translation"] == pytest.approx(0.004 * SCALE, rel=1e-4)  # in the truth's units
     assert e[0]["estimate_rotation_deg"] == pytest.approx(1.0, abs=1e-6)
     assert e[1]["estimate_translation"] < 1e-6 and e[0]["refined_translation"] < 1e-6
+    # in pixels of the truth's second-state views: (offset + 2 r sin(angle / 2)) x median(focal / distance),
+    # with the cameras read here from the loaded views and r from the object's Gaussians in the truth's frame
+    views = load_capture(moved, ["state2"], load_depth=False).states["state2"]
+    eyes = np.stack([-vm[:3, :3].T @ vm[:3, 3] for vm in views.viewmats.double().numpy()])
+    Ks = views.Ks.double().numpy()
+    P1, P2 = (np.asarray(load_capture(moved, []).poses[s])[0] for s in ("state1", "state2"))
+    ppu = np.median((Ks[:, 0, 0] + Ks[:, 1, 1]) / 2 / np.linalg.norm(eyes - P2[:3, 3], axis=1))
+    g = w.gaussians("state1")
+    pts = _similar(g.means[g.labels == w.object_ids[0]].astype(np.float64))  # world -> truth
+    r = np.percentile(np.linalg.norm(pts - P1[:3, 3], axis=1), 99)
+    turn = 2 * r * math.sin(math.radians(e[0]["estimate_rotation_mod_symmetry_deg"]) / 2)
+    assert e[0]["estimate_px"] == pytest.approx((0.004 * SCALE + turn) * ppu, rel=1e-4)
+    assert 0.004 * SCALE * ppu <= e[0]["estimate_px"] and e[1]["estimate_px"] < 1e-3 < e[0]["estimate_px"]
+    assert all(o["refined_px"] < 1e-3 for o in e)
     # the dsg-eval report carries them
     assert eval_main([str(world), str(moved), "--out", str(tmp_path / "e"), "--align-frames"]) == 0
     rep = json.loads((tmp_path / "e" / "report.json").read_text())

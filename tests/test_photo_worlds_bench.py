@@ -38,7 +38,9 @@ def test_photo_worlds_quick(tmp_path):
         assert m["refined_rotation_mod_symmetry_deg"] <= m["refined_rotation_deg"] + 1e-9
         assert m["refined_rotation_mod_symmetry_deg"] <= m["refined_rotation_mod_texture_deg"] + 1e-9
         assert m["refined_rotation_mod_texture_deg"] <= m["refined_rotation_deg"] + 1e-9
+        assert m["estimate_px"] > 0 and m["refined_px"] > 0  # the errors in pixels of the truth's views
     assert r["summary"]["worst_estimate_mm"] == max(m["estimate_mm"] for m in s["motions"].values())
+    assert r["summary"]["worst_refined_px"] == max(m["refined_px"] for m in s["motions"].values())
     assert s["gap_db_unaligned"] == pytest.approx(
         s["reference"]["psnr_unaligned"] - s["photo"]["psnr_unaligned"], abs=1e-3
     )

@@ -34,6 +34,7 @@ __all__ = [
     "ObjectInfo",
     "Views",
     "capture_states",
+    "frame_intrinsics",
     "frame_poses",
     "load_blender",
     "load_capture",
@@ -200,6 +201,16 @@ def frame_poses(transforms_json: str | Path, *, rigid_tol: float = 1e-4) -> np.n
     tj = Path(transforms_json)
     frames = _read_transforms(tj)["frames"]
     return np.stack([_frame_c2w(fr, f"{tj}: frames[{i}]", rigid_tol) for i, fr in enumerate(frames)])
+
+
+def frame_intrinsics(transforms_json: str | Path) -> np.ndarray:
+    """The frames' intrinsics ``[V,3,3]`` float64 at the images' own size (:func:`view_size`, the first
+    image's header), as :func:`load_views` reads them at ``downscale`` 1, without decoding an image."""
+    tj = Path(transforms_json)
+    meta, (w, h) = _read_transforms(tj), view_size(tj)
+    return np.stack(
+        [_intrinsics(meta, fr, w, h, f"{tj}: frames[{i}]") for i, fr in enumerate(meta["frames"])]
+    )
 
 
 def view_size(

@@ -434,13 +434,14 @@ def evaluate_test_states(
         unit = "mm" if me["units"] == "metres" else me["units"]
         key = "mm" if me["units"] == "metres" else "translation"
         lines += ["", f"Object motions {me['src']} -> {me['dst']} against the ground truth's:", "",
-                  f"| object | given ({unit}) | given (deg, modulo symmetry) | trained ({unit}) | trained (deg) |",
-                  "| --- | --- | --- | --- | --- |"]  # fmt: skip
+                  f"| object | given ({unit}) | given (deg, modulo symmetry) | given (px, at most) | trained ({unit}) "
+                  "| trained (deg) | trained (px) |", "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
         lines += [
-            f"| {o['name']} | {o['estimate_' + key]:.3g} | {o['estimate_rotation_mod_symmetry_deg']:.3g} | "
-            f"{o['refined_' + key]:.3g} | {o['refined_rotation_mod_symmetry_deg']:.3g} |"
+            "| " + " | ".join([o["name"], *(
+                "-" if o.get(f"{t}_{k}") is None else f"{o[f'{t}_{k}']:.3g}"
+                for t in ("estimate", "refined") for k in (key, "rotation_mod_symmetry_deg", "px"))]) + " |"
             for o in me["objects"]
-        ]
+        ]  # fmt: skip
     if unaligned:
         u = float(np.mean(unaligned))
         lines += ["", f"Each camera aligned to the world first; unaligned mean PSNR {fmt(u)} dB."]

@@ -286,8 +286,12 @@ def motion_errors(world: World, truth: str | Path, alignment: FrameAlignment) ->
     (``refined_*``): the world's motions are moved into the truth's frame through ``alignment`` and measured as
     :func:`train_world.capture.compare.motion_error` does (where they put the object's true centre, in the
     truth's units and mm when those are metres; the angle, also modulo the object's shape symmetry when the
-    truth describes its shape, and modulo only those that keep its pattern). None when the world records no
-    motions (``metadata["motions"]``) or the truth lacks either state's object poses or has other objects."""
+    truth describes its shape, and modulo only those that keep its pattern). ``*_px``: what that error means in
+    the truth's views of the moved state, at most: (position error + 2 r sin(angle modulo symmetry / 2)) times
+    the median over those views of focal length / distance to the object, with r the distance from the true
+    centre within which 99 % of the world's Gaussians of the object lie; None when the truth has no cameras
+    for that state. None when the world records no motions (``metadata["motions"]``) or the truth lacks either
+    state's object poses or has other objects."""
     from train_world.capture import load_capture
     from train_world.capture.compare import motion_error
 
@@ -304,13 +308,25 @@ def motion_errors(world: World, truth: str | Path, alignment: FrameAlignment) ->
     described = [o for o in cap.metadata.get("objects", []) if isinstance(o, Mapping)]
     shapes = {o.get("name"): o.get("shape") for o in described}
     patterns = {o.get("name"): o.get("pattern") for o in described}
+    centres = np.einsum("kij,kj->ki", true_motion[:, :3, :3], P1[:, :3, 3]) + true_motion[:, :3, 3]
+    px_per_unit = _pixels_per_unit(Path(truth) / dst / "transforms.json", centres)
     objects = []
     for k, name in enumerate(world.object_names):
         e: dict[str, Any] = {"name": name}
+        oid = world.object_ids[k]
+        means = np.asarray(world.objects[oid].gaussians.means, np.float64)
+        P = S_inv @ np.asarray(world.poses[src], np.float64)[k]  # object frame -> truth frame, first state
+        radius = float(
+            np.percentile(np.linalg.norm(means @ P[:3, :3].T + P[:3, 3] - P1[k, :3, 3], axis=1), 99)
+        )
         for key, tag in (("initial", "estimate"), ("final", "refined")):
             T = S_inv @ np.asarray(rec[key], dtype=np.float64)[k] @ S
             obj = cap.objects[k].name
             m = motion_error(T, true_motion[k], P1[k], shapes.get(obj), patterns.get(obj))
+            bound = m["position_error"] + 2 * radius * math.sin(
+                math.radians(m["rotation_error_mod_symmetry_deg"]) / 2
+            )
+            e[f"{tag}_px"] = None if px_per_unit is None else bound * float(px_per_unit[k])
             e[f"{tag}_translation"] = m["position_error"]
             if cap.units == "metres":
                 e[f"{tag}_mm"] = m["position_error"] * 1000.0
@@ -325,3 +341,18 @@ def motion_errors(world: World, truth: str | Path, alignment: FrameAlignment) ->
         "units": cap.units,
         "objects": objects,
     }
+
+
+def _pixels_per_unit(transforms_json: Path, centres: np.ndarray) -> np.ndarray | None:
+    """Per point of ``centres [K,3]``, the median over the frames of ``transforms_json`` of focal length
+    (x and y averaged) over the distance from the camera: pixels per unit of length there. None without the
+    file."""
+    from train_world.capture.loader import frame_intrinsics, frame_poses
+
+    if not transforms_json.is_file():
+        return None
+    eyes = frame_poses(transforms_json)[:, :3, 3]
+    K = frame_intrinsics(transforms_json)
+    focal = (K[:, 0, 0] + K[:, 1, 1]) / 2
+    dist = np.linalg.norm(eyes[None] - centres[:, None], axis=2)  # [K,V]
+    return np.median(focal[None] / dist, axis=1)

@@ -316,9 +316,8 @@ def motion_errors(world: World, truth: str | Path, alignment: FrameAlignment) ->
         oid = world.object_ids[k]
         means = np.asarray(world.objects[oid].gaussians.means, np.float64)
         P = S_inv @ np.asarray(world.poses[src], np.float64)[k]  # object frame -> truth frame, first state
-        radius = float(
-            np.percentile(np.linalg.norm(means @ P[:3, :3].T + P[:3, 3] - P1[k, :3, 3], axis=1), 99)
-        )
+        dist = np.linalg.norm(means @ P[:3, :3].T + P[:3, 3] - P1[k, :3, 3], axis=1)
+        radius = float(np.percentile(dist, 99)) if len(dist) else 0.0
         for key, tag in (("initial", "estimate"), ("final", "refined")):
             T = S_inv @ np.asarray(rec[key], dtype=np.float64)[k] @ S
             obj = cap.objects[k].name

@@ -2,6 +2,7 @@
 
     python -m benchmarks.photo_worlds [--scenes all] [--seed 0] [--work DIR] [--out FILE]
     python -m benchmarks.photo_worlds --scenes four_mixed --views 24 --preset quick --iterations 200  # a quick look
+    python -m benchmarks.photo_worlds --merge A.json B.json --out all.json  # one result of several runs' scenes
 
 Per scene, each step a fresh process, in ``--work`` (kept) or a temporary folder:
 
@@ -35,7 +36,8 @@ mean_reference_psnr}, targets}``. The motions are the photo world's against the 
 ``motion_errors``): as ``dsg-capture`` estimated them and as the joint phase refined them; ``*_px`` is how
 far the error moves the object's surface in the truth's views, at most.
 ``gap_db`` is the reference's PSNR minus the photo world's. Times depend on the machine and its load: run it
-on an idle machine.
+on an idle machine. ``--merge`` joins the scenes of stored results of the same settings (one scene per run, as
+a scene takes about an hour) into one result with the summary over all of them.
 """
 
 from __future__ import annotations
@@ -217,27 +219,73 @@ def run(out: Path, scenes: list[str], work: Path | None, synth_args: list[str], 
             results[s] = scene(
                 s, root, synth_args, train_args, marker, eval_args, capture_args, photo_train_args
             )
-    gaps = [r["gap_db"] for r in results.values()]
     result = {
         "config": {"scenes": scenes, "synth_args": synth_args, "train_args": train_args, "marker_m": marker,
                    "eval_args": list(eval_args or []), "capture_args": list(capture_args or []),
                    "photo_train_args": list(photo_train_args or []), "cpus": os.cpu_count()},
         "scenes": results,
-        "summary": {
-            "mean_gap_db": round(sum(gaps) / len(gaps), 3),
-            **(
-                {"mean_gap_db_unaligned": round(sum(r["gap_db_unaligned"] for r in results.values()) / len(gaps), 3)}
-                if all("gap_db_unaligned" in r for r in results.values())
-                else {}
-            ),
-            "worst_gap_db": max(gaps),
-            "slowest_min": max(r["photos_to_world_min"] for r in results.values()),
-            **_worst_motions(results),
-            "mean_photo_psnr": round(sum(r["photo"]["psnr"] for r in results.values()) / len(results), 3),
-            "mean_reference_psnr": round(sum(r["reference"]["psnr"] for r in results.values()) / len(results), 3),
-        },
+        "summary": summarise(results),
         "targets": {"gap_db": TARGET_GAP_DB, "photos_to_world_min": TARGET_MINUTES, **TARGET_MOTIONS},
     }  # fmt: skip
+    write_result(out, result)
+    return result
+
+
+def summarise(results: dict[str, Any]) -> dict[str, Any]:
+    """The ``summary`` over the scenes' figures ``results`` (``{scene: scene()'s dict}``): the mean and worst
+    gap, the slowest photos -> world, the worst motions and the mean PSNRs."""
+    gaps = [r["gap_db"] for r in results.values()]
+    n = len(gaps)
+    out: dict[str, Any] = {"mean_gap_db": round(sum(gaps) / n, 3)}
+    if all("gap_db_unaligned" in r for r in results.values()):
+        out["mean_gap_db_unaligned"] = round(sum(r["gap_db_unaligned"] for r in results.values()) / n, 3)
+    return {
+        **out,
+        "worst_gap_db": max(gaps),
+        "slowest_min": max(r["photos_to_world_min"] for r in results.values()),
+        **_worst_motions(results),
+        "mean_photo_psnr": round(sum(r["photo"]["psnr"] for r in results.values()) / n, 3),
+        "mean_reference_psnr": round(sum(r["reference"]["psnr"] for r in results.values()) / n, 3),
+    }
+
+
+def merge(files: list[Path], out: Path) -> dict[str, Any]:
+    """One result of the scenes of several stored results ``files`` (runs of one scene each, say), with their
+    summary over all of them, written to ``out``. The results must agree on every setting but the scenes, and
+    name each scene once; ``config.merged_from`` lists the files, each scene keeps the machine that measured
+    it (``machine``), as its times are that machine's. Raises ``ValueError`` naming the file otherwise."""
+    if not files:
+        raise ValueError("--merge needs at least one result file")
+    scenes: dict[str, Any] = {}
+    first: dict[str, Any] | None = None
+    for f in files:
+        try:
+            doc = json.loads(Path(f).read_text())
+            config, found = dict(doc["config"]), doc["scenes"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(
+                f"{f}: not a benchmarks.photo_worlds result ({e}); pass the JSON files it wrote"
+            ) from None
+        config.pop("scenes", None)
+        if first is None:
+            first = config
+        elif config != first:
+            keys = sorted(k for k in {*config, *first} if config.get(k) != first.get(k))
+            raise ValueError(f"{f}: its settings differ from {files[0]}'s in {', '.join(keys)}; "
+                             "merge results of the same settings")  # fmt: skip
+        for name, figures in found.items():
+            if name in scenes:
+                raise ValueError(f"{f}: scene {name} is in an earlier file too; pass one result per scene")
+            scenes[name] = {**figures, "machine": figures.get("machine", doc.get("machine"))}
+    assert first is not None
+    result = {
+        "config": {**first, "scenes": list(scenes), "merged_from": [Path(f).name for f in files]},
+        "scenes": scenes,
+        "summary": summarise(scenes),
+        "targets": {"gap_db": TARGET_GAP_DB, "photos_to_world_min": TARGET_MINUTES, **TARGET_MOTIONS},
+    }
+    machines = {json.dumps(s["machine"], sort_keys=True) for s in scenes.values()}
+    result["machine"] = scenes[next(iter(scenes))]["machine"] if len(machines) == 1 else None
     write_result(out, result)
     return result
 
@@ -324,7 +372,22 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="dsg-train --refine-cameras for the photo world (its cameras refined in training)",
     )
+    p.add_argument(
+        "--merge",
+        nargs="+",
+        type=Path,
+        metavar="RESULT",
+        help="instead of running: one result of the scenes of these stored results (of the same settings), "
+        "with the summary over all of them, written to --out",
+    )
     args = p.parse_args(argv)
+    if args.merge:
+        try:
+            r = merge(args.merge, args.out or default_out("photo_worlds"))
+        except ValueError as e:
+            p.error(str(e))
+        print(json.dumps(r["summary"]))
+        return 0
     scenes = checked_scene_args(p, args)
     synth = ["--seed", str(args.seed)] + (["--views", str(args.views)] if args.views else [])
     train = ["--seed", str(args.seed)] + (["--preset", args.preset] if args.preset else [])

@@ -117,3 +117,64 @@ def test_photo_scale_trains_the_photo_world_at_the_ground_truths_size(tmp_path, 
         main(["--out", str(tmp_path / "x.json"), "--scenes", "two_blocks", "--photo-scale", "0"])
     assert e.value.code == 2 and "--photo-scale" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
+
+
+def _stored(path, scene, gap, minutes, cpu="AMD EPYC", **config):
+    base = {
+        "synth_args": ["--seed", "0", "--photo-scale", "2"],
+        "train_args": ["--seed", "0"],
+        "marker_m": 0.1,
+    }
+    figures = {
+        "gap_db": gap,
+        "gap_db_unaligned": gap + 0.5,
+        "photos_to_world_min": minutes,
+        "photo": {"psnr": 37.0},
+        "reference": {"psnr": 37.0 + gap},
+        "motions": {"box": {"estimate_mm": 10 * gap, "refined_px": gap / 10}},
+    }
+    doc = {
+        "config": {**base, **config, "scenes": [scene]},
+        "scenes": {scene: figures},
+        "machine": {"cpu": cpu},
+    }
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_merge_joins_the_scenes_of_several_runs(tmp_path, capsys):
+    a = _stored(tmp_path / "a.json", "two_blocks", 1.5, 40.0)
+    b = _stored(tmp_path / "b.json", "five_small", 0.5, 30.0, cpu="other")
+    out = tmp_path / "all.json"
+    assert main(["--merge", str(a), str(b), "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["config"]["scenes"] == ["two_blocks", "five_small"]
+    assert r["config"]["merged_from"] == ["a.json", "b.json"] and r["config"]["marker_m"] == 0.1
+    s = r["summary"]
+    assert s["mean_gap_db"] == pytest.approx(1.0) and s["worst_gap_db"] == 1.5
+    assert s["mean_gap_db_unaligned"] == pytest.approx(1.5) and s["slowest_min"] == 40.0
+    assert s["worst_estimate_mm"] == 15.0 and s["mean_reference_psnr"] == pytest.approx(38.0)
+    # each scene keeps the machine that timed it; the whole names none when they differ
+    assert r["scenes"]["five_small"]["machine"] == {"cpu": "other"} and r["machine"] is None
+    assert json.loads(capsys.readouterr().out)["mean_gap_db"] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("problem", ["settings", "twice", "not_json"])
+def test_merge_refuses_results_that_do_not_go_together(tmp_path, capsys, problem):
+    a = _stored(tmp_path / "a.json", "two_blocks", 1.5, 40.0)
+    if problem == "settings":
+        b = _stored(tmp_path / "b.json", "five_small", 0.5, 30.0, marker_m=0.0)
+        said = "differ from"
+    elif problem == "twice":
+        b = _stored(tmp_path / "b.json", "two_blocks", 0.5, 30.0)
+        said = "scene two_blocks is in an earlier file"
+    else:
+        b = tmp_path / "b.json"
+        b.write_text("not json")
+        said = "not a benchmarks.photo_worlds result"
+    out = tmp_path / "all.json"
+    with pytest.raises(SystemExit) as e:
+        main(["--merge", str(a), str(b), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and said in err and "b.json" in err
+    assert not out.exists()

@@ -28,8 +28,8 @@ the photos and the capture, the reference on the photos); remove a step's output
 evaluations always run again.
 
 Writes ``{config, scenes: {S: {capture_s, train_s, photos_to_world_min, peak_rss_gib, photo: {psnr, ssim,
-mask_iou, psnr_unaligned}, reference: {...}, gap_db, gap_db_unaligned, motions: {object: {estimate_mm,
-estimate_rotation_deg, estimate_rotation_mod_symmetry_deg, estimate_px, refined_...}},
+mask_iou, psnr_unaligned, regions: {region: PSNR}}, reference: {...}, gap_db, gap_db_unaligned,
+motions: {object: {estimate_mm, estimate_rotation_deg, estimate_rotation_mod_symmetry_deg, estimate_px, refined_...}},
 camera_refinement: {state: {rotation_deg_median, ...}}}}, summary: {mean_gap_db,
 mean_gap_db_unaligned, worst_gap_db, worst_estimate_mm, ..., slowest_min, mean_photo_psnr,
 mean_reference_psnr}, targets}``. The motions are the photo world's against the ground truth's (``dsg-eval``'s
@@ -109,11 +109,17 @@ SYNTH, CAPTURE, TRAIN, EVAL = (
 )
 
 
-def _metrics(report: Path) -> dict[str, float | None]:
+def _metrics(report: Path) -> dict[str, Any]:
+    """``dsg-eval``'s means, and the PSNR of each region (``regions``: ``outline``, ``objects``,
+    ``background``, ``unseen`` and the background's parts ``table_top``, ``floor``, ``other``) where found."""
     r = json.loads(report.read_text())
-    out = {k: r["mean"].get(k) for k in ("psnr", "ssim", "mask_iou")}
+    out: dict[str, Any] = {k: r["mean"].get(k) for k in ("psnr", "ssim", "mask_iou")}
     if "mean_unaligned" in r:
         out["psnr_unaligned"] = r["mean_unaligned"]["psnr"]
+    by_region = r.get("error_by_region") or {}
+    entries = {**(by_region.get("regions") or {}), **(by_region.get("background_parts") or {})}
+    if entries:
+        out["regions"] = {k: e["psnr"] for k, e in entries.items()}
     return out
 
 
@@ -239,6 +245,17 @@ def summarise(results: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"mean_gap_db": round(sum(gaps) / n, 3)}
     if all("gap_db_unaligned" in r for r in results.values()):
         out["mean_gap_db_unaligned"] = round(sum(r["gap_db_unaligned"] for r in results.values()) / n, 3)
+    shared = None
+    for r in results.values():
+        for k in ("photo", "reference"):
+            names = {n for n, v in (r[k].get("regions") or {}).items() if v is not None}
+            shared = names if shared is None else shared & names
+    if shared:  # per region, the reference's PSNR minus the photo world's, averaged over the scenes
+        out["mean_region_gap_db"] = {
+            region: round(sum(r["reference"]["regions"][region] - r["photo"]["regions"][region]
+                              for r in results.values()) / n, 3)
+            for region in sorted(shared)
+        }  # fmt: skip
     return {
         **out,
         "worst_gap_db": max(gaps),

@@ -91,9 +91,13 @@ def test_report_of_heldout_views(trained):
     total = sum(e["squared_error"] for e in regions.values()) / sum(e["pixels"] for e in regions.values())
     assert total == pytest.approx(mse, rel=1e-9)
     assert set(r["error_by_region"]["per_object"]) == set(r["object_iou"])
+    # the synthetic capture has depth and a table: the background split by the surface each pixel shows
+    parts = r["error_by_region"]["background_parts"]
+    assert sum(e["pixels"] for e in parts.values()) == regions["background"]["pixels"]
+    assert parts["table_top"]["pixels"] > 0 and parts["other"]["pixels"] > 0
     md = (out / "report.md").read_text()
     assert "| **mean** |" in md and md.count("\n| state1/") == 3
-    assert "| outline |" in md and "| object yellow_box |" in md
+    assert "| outline |" in md and "| object yellow_box |" in md and "| background: table top |" in md
     grid = Image.open(out / "grid.png")
     # 3 rows of (GT | ours | error | GT mask | our mask), 32 px tiles with 2 px borders, and the labels
     # (column names above, state and view left of each row) take room beyond the tiles

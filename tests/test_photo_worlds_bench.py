@@ -48,6 +48,12 @@ def test_photo_worlds_quick(tmp_path):
     assert s["camera_refinement"] is None  # the photo world's cameras as dsg-capture estimated them
     for k in ("photo", "reference"):
         assert math.isfinite(s[k]["psnr"]) and 5 < s[k]["psnr"] < 60 and 0 <= s[k]["mask_iou"] <= 1
+        # where each world's error is: dsg-eval's regions and the background's parts (the truth has depth)
+        assert {"outline", "objects", "background", "table_top", "floor", "other"} <= set(s[k]["regions"])
+        assert 5 < s[k]["regions"]["table_top"] < 80
+    assert r["summary"]["mean_region_gap_db"]["floor"] == pytest.approx(
+        s["reference"]["regions"]["floor"] - s["photo"]["regions"]["floor"], abs=1e-3
+    )
     assert s["gap_db"] == pytest.approx(s["reference"]["psnr"] - s["photo"]["psnr"], abs=1e-3)
     assert s["photos_to_world_min"] == pytest.approx((s["capture_s"] + s["train_s"]) / 60, abs=0.01)
     assert s["peak_rss_gib"] > 0.05
@@ -129,8 +135,8 @@ def _stored(path, scene, gap, minutes, cpu="AMD EPYC", **config):
         "gap_db": gap,
         "gap_db_unaligned": gap + 0.5,
         "photos_to_world_min": minutes,
-        "photo": {"psnr": 37.0},
-        "reference": {"psnr": 37.0 + gap},
+        "photo": {"psnr": 37.0, "regions": {"floor": 30.0, "walls": 40.0}},
+        "reference": {"psnr": 37.0 + gap, "regions": {"floor": 30.0 + 2 * gap, "walls": None}},
         "motions": {"box": {"estimate_mm": 10 * gap, "refined_px": gap / 10}},
     }
     doc = {
@@ -154,6 +160,7 @@ def test_merge_joins_the_scenes_of_several_runs(tmp_path, capsys):
     assert s["mean_gap_db"] == pytest.approx(1.0) and s["worst_gap_db"] == 1.5
     assert s["mean_gap_db_unaligned"] == pytest.approx(1.5) and s["slowest_min"] == 40.0
     assert s["worst_estimate_mm"] == 15.0 and s["mean_reference_psnr"] == pytest.approx(38.0)
+    assert s["mean_region_gap_db"] == {"floor": pytest.approx(2.0)}  # regions without a PSNR are left out
     # each scene keeps the machine that timed it; the whole names none when they differ
     assert r["scenes"]["five_small"]["machine"] == {"cpu": "other"} and r["machine"] is None
     assert json.loads(capsys.readouterr().out)["mean_gap_db"] == pytest.approx(1.0)

@@ -60,6 +60,7 @@ from dsg_gym.splat.layers import rasterize_layers
 from dsg_gym.world import World, load_world
 from train_world.capture import load_capture
 from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
+from train_world.eval.background_parts import capture_background_parts
 from train_world.eval.frames import FrameAlignment, motion_errors
 from train_world.eval.metrics import mask_iou, psnr, psnr_from_mse, ssim
 from train_world.eval.regions import RegionErrors, capture_coverage, combine
@@ -270,9 +271,11 @@ def evaluate(
     inter = np.zeros(k + 1)
     union = np.zeros(k + 1)
     regions = RegionErrors(world.object_names) if gt_cls is not None else None
-    seen = None
+    seen = parts = None
     if regions is not None and trained and src.get("kind") == "capture":
         seen = capture_coverage(capture, eval_state, views.indices, trained, held, downscale)
+    if regions is not None:
+        parts = capture_background_parts(capture, eval_state, views.indices, downscale)
     for i in range(len(gt_imgs)):
         ours = np.clip(rgb[i], 0, 1)
         entry: dict[str, Any] = {
@@ -289,7 +292,8 @@ def evaluate(
             u8(np.abs(ours - gt_imgs[i]).mean(-1, keepdims=True).repeat(3, -1) * 4),
         ]
         if regions is not None:
-            regions.add(ours, gt_imgs[i], gt_cls[i], None if seen is None else seen[i])
+            regions.add(ours, gt_imgs[i], gt_cls[i], None if seen is None else seen[i],
+                        None if parts is None else parts[i])  # fmt: skip
         if pred_cls is not None and gt_cls is not None:
             ious = mask_iou(pred_cls[i], gt_cls[i], range(1, k + 1))
             entry["mask_iou"] = {world.object_names[c - 1]: v for c, v in ious.items()}

@@ -9,6 +9,9 @@ Regions of a view, from its ground-truth id mask ``[H, W]`` (0 = table and room,
 - ``unseen``: background pixels that no training view sees (:func:`seen_by`; only with depth maps, else
   every background pixel counts as ``background``): what a world can only guess.
 
+Where the ground truth has depth and a table, ``background`` is split further by the surface each pixel shows
+(:mod:`.background_parts`: ``table_top``, ``floor``, ``other``), reported under ``background_parts``.
+
 For each region :class:`RegionErrors` accumulates, over views, the pixel count and the sum of squared error
 (mean over RGB channels, images in [0, 1], float64) and reports the region's share of the pixels, its PSNR
 and its share of the total squared error: a region with a small pixel share and a large error share is where
@@ -25,6 +28,7 @@ import numpy as np
 from scipy import ndimage
 
 from dsg_gym.cameras import unproject
+from train_world.eval.background_parts import PARTS
 from train_world.eval.metrics import psnr_from_mse
 
 __all__ = [
@@ -153,12 +157,21 @@ class RegionErrors:
         self.views = 0
         self.coverage_views = 0  # views whose unseen pixels were told apart
         self.seen_psnr_sum = 0.0  # over those views: PSNR of the pixels but the unseen ones
+        self.parts_views = 0  # views whose background was split into parts
+        for part in PARTS:
+            self.pixels[f"part:{part}"], self.sq[f"part:{part}"] = 0, 0.0
 
     def add(
-        self, ours: np.ndarray, truth: np.ndarray, classes: np.ndarray, seen: np.ndarray | None = None
+        self,
+        ours: np.ndarray,
+        truth: np.ndarray,
+        classes: np.ndarray,
+        seen: np.ndarray | None = None,
+        parts: Mapping[str, np.ndarray] | None = None,
     ) -> None:
-        """One view: ``ours``, ``truth`` ``[H, W, 3]`` in [0, 1], the ground truth's ids ``[H, W]`` and
-        optionally which pixels the training views see (:func:`seen_by`)."""
+        """One view: ``ours``, ``truth`` ``[H, W, 3]`` in [0, 1], the ground truth's ids ``[H, W]``, optionally
+        which pixels the training views see (:func:`seen_by`) and the view's background parts
+        (:func:`.background_parts.background_parts`)."""
         if ours.shape != truth.shape or ours.shape[:2] != classes.shape:
             raise ValueError(
                 f"shapes differ: ours {ours.shape}, truth {truth.shape}, classes {classes.shape}"
@@ -172,6 +185,12 @@ class RegionErrors:
         for r in REGIONS:
             self.pixels[r] += int(masks[r].sum())
             self.sq[r] += float(err[masks[r]].sum())
+        if parts is not None:
+            self.parts_views += 1
+            for part in PARTS:
+                m = masks["background"] & np.asarray(parts[part], bool)
+                self.pixels[f"part:{part}"] += int(m.sum())
+                self.sq[f"part:{part}"] += float(err[m].sum())
         for k, n in enumerate(self.names, start=1):
             m = masks["objects"] & (classes == k)
             self.pixels[f"object:{n}"] += int(m.sum())
@@ -182,7 +201,9 @@ class RegionErrors:
         ``pixels``, ``squared_error`` (the sums), ``pixel_share``, ``psnr`` (None without pixels) and
         ``error_share`` (an object's shares are of the whole image). ``mean_psnr_seen``: over the views with
         coverage, the mean PSNR of each view without its unseen pixels (what the views' mean PSNR would be if
-        the world rendered unseen background perfectly), None without coverage."""
+        the world rendered unseen background perfectly), None without coverage. ``background_parts``: with
+        parts given for every view, ``background`` split by :data:`.background_parts.PARTS` (shares of the
+        whole image); None otherwise."""
         total_px = sum(self.pixels[r] for r in REGIONS)
         total_sq = sum(self.sq[r] for r in REGIONS)
 
@@ -203,6 +224,11 @@ class RegionErrors:
             "mean_psnr_seen": self.seen_psnr_sum / self.coverage_views if self.coverage_views else None,
             "regions": {r: entry(r) for r in REGIONS},
             "per_object": {n: entry(f"object:{n}") for n in self.names},
+            "background_parts": (
+                {part: entry(f"part:{part}") for part in PARTS}
+                if self.views and self.parts_views == self.views
+                else None
+            ),
         }
 
 
@@ -221,7 +247,13 @@ def combine(reports: Sequence[dict[str, Any]]) -> dict[str, Any]:
         acc.views += int(r.get("views", 0))
         acc.coverage_views += int(r.get("coverage_views", 0))
         acc.seen_psnr_sum += (r.get("mean_psnr_seen") or 0.0) * int(r.get("coverage_views", 0))
-        for key, e in [*r["regions"].items(), *((f"object:{n}", e) for n, e in r["per_object"].items())]:
+        parts = r.get("background_parts") or {}
+        acc.parts_views += int(r.get("views", 0)) if parts else 0
+        for key, e in [
+            *r["regions"].items(),
+            *((f"object:{n}", e) for n, e in r["per_object"].items()),
+            *((f"part:{p}", e) for p, e in parts.items()),
+        ]:
             acc.pixels[key] += int(e["pixels"])
             acc.sq[key] += float(e["squared_error"])
     return acc.report()

@@ -103,6 +103,10 @@ def region_lines(by_region: dict[str, Any] | None) -> list[str]:
         "| --- | --- | --- | --- |",
     ]
     rows = [*by_region["regions"].items(), *((f"object {n}", e) for n, e in by_region["per_object"].items())]
+    rows += [
+        (f"background: {p.replace('_', ' ')}", e)
+        for p, e in (by_region.get("background_parts") or {}).items()
+    ]
     for name, e in rows:
         share = "-" if e["pixel_share"] is None else f"{100 * e['pixel_share']:.1f} %"
         err = "-" if e["error_share"] is None else f"{100 * e['error_share']:.1f} %"

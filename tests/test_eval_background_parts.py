@@ -1,0 +1,104 @@
+"""train_world.eval.background_parts: background pixels told apart by the surface the truth's depth shows."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from train_world.eval.background_parts import PARTS, background_parts, capture_background_parts
+from train_world.eval.regions import RegionErrors, combine, region_masks
+
+H = W = 60
+K = np.array([[40.0, 0, 30], [0, 40.0, 30], [0, 0, 1]])
+EYE = np.array([0.0, 0.0, 1.0])
+# looking straight down: camera x = world x, camera y = -world y, camera z = -world z
+R = np.diag([1.0, -1.0, -1.0])
+VIEWMAT = np.eye(4)
+VIEWMAT[:3, :3], VIEWMAT[:3, 3] = R, -R @ EYE
+BOUNDS = np.array([[-0.3, -1.0, 0.0], [0.25, 1.0, 0.0]])
+
+
+def _plane_depth(normal, offset):
+    """Depth [H, W] at which each pixel's ray meets the plane normal . x = offset."""
+    y, x = np.mgrid[0:H, 0:W] + 0.5
+    rays = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], -1) @ R  # world, z=1
+    n = np.asarray(normal, float)
+    return (offset - n @ EYE) / (rays @ n)
+
+
+def _scene():
+    """Columns 0-19 see a floor 0.7 below the table top, 20-39 the table top, 40-59 a shelf above the top
+    (rows 0-29) and a floor tilted 45 degrees (rows 30-59) with no depth at its last rows."""
+    d = _plane_depth([0, 0, 1], -0.7)
+    d[:, 20:40] = _plane_depth([0, 0, 1], 0.0)[:, 20:40]
+    d[:30, 40:] = _plane_depth([0, 0, 1], 0.2)[:30, 40:]
+    d[30:, 40:] = _plane_depth([1, 0, 1], 0.5 - 0.7)[30:, 40:]
+    d[55:, 40:] = 0.0
+    return d
+
+
+def test_the_parts_follow_the_surfaces_and_partition_the_view():
+    parts = background_parts(_scene(), VIEWMAT, K, BOUNDS, 0.0, 1.0)
+    assert set(parts) == set(PARTS)
+    assert (np.stack([parts[p] for p in PARTS]).sum(0) == 1).all()
+    # the table top: its column, exactly (the bounds reach past it)
+    assert parts["table_top"][:, 20:40].all() and not parts["table_top"][:, :20].any()
+    assert not parts["table_top"][:, 40:].any()
+    # the floor inside its column (a normal at the seam mixes two surfaces)
+    assert parts["floor"][:, :19].all()
+    # above the top, tilted or without depth: other
+    assert parts["other"][:, 41:].all()
+
+
+def test_the_table_needs_its_bounds_and_the_floor_its_depth_below():
+    narrow = BOUNDS.copy()
+    narrow[1, 0] = 0.0  # the table ends at x = 0, the middle of its column
+    parts = background_parts(_scene(), VIEWMAT, K, narrow, 0.0, 1.0)
+    assert parts["table_top"][:, 20:29].all() and parts["other"][:, 32:40].all()
+    # the same floor counts as table top when the table is said to lie at its height, not below it
+    low = background_parts(_scene(), VIEWMAT, K, np.array([[-5, -5, -0.7], [5, 5, -0.7]]), -0.7, 1.0)
+    assert low["table_top"][:, :19].all() and not low["floor"].any()
+    with pytest.raises(ValueError, match="scale"):
+        background_parts(_scene(), VIEWMAT, K, BOUNDS, 0.0, 0.0)
+    with pytest.raises(ValueError, match="depth"):
+        background_parts(_scene()[None], VIEWMAT, K, BOUNDS, 0.0, 1.0)
+
+
+def test_region_errors_split_the_background_by_part():
+    rng = np.random.default_rng(0)
+    cls = np.zeros((H, W), np.int64)
+    cls[10:20, 25:35] = 1  # an object on the table
+    parts = background_parts(_scene(), VIEWMAT, K, BOUNDS, 0.0, 1.0)
+    views = [(rng.random((H, W, 3)), rng.random((H, W, 3))) for _ in range(2)]
+    acc, halves = RegionErrors(["box"]), []
+    for ours, truth in views:
+        acc.add(ours, truth, cls, parts=parts)
+        one = RegionErrors(["box"])
+        one.add(ours, truth, cls, parts=parts)
+        halves.append(one.report())
+    r = acc.report()
+    bp = r["background_parts"]
+    background = r["regions"]["background"]
+    assert sum(bp[p]["pixels"] for p in PARTS) == background["pixels"]
+    assert sum(bp[p]["squared_error"] for p in PARTS) == pytest.approx(background["squared_error"])
+    m = region_masks(cls)["background"] & parts["table_top"]
+    assert bp["table_top"]["pixels"] == 2 * int(m.sum())
+    err = np.mean([np.mean((o - t) ** 2, -1)[m].mean() for o, t in views])
+    assert bp["table_top"]["squared_error"] / bp["table_top"]["pixels"] == pytest.approx(err)
+    merged = combine(halves)["background_parts"]
+    for part in PARTS:
+        assert merged[part] == pytest.approx(bp[part])
+    # without parts for every view there is no split
+    acc.add(*views[0], cls)
+    assert acc.report()["background_parts"] is None
+
+
+def test_a_capture_without_a_table_or_up_axis_z_has_no_parts(tmp_path):
+    scene = {"format": "dsg-capture", "up_axis": "+z", "states": ["state1"]}
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    assert capture_background_parts(tmp_path, "state1", [0]) is None  # no table
+    table = {"bounds": [[-0.4, -0.3, 0.0], [0.4, 0.3, 0.0]], "top_z": 0.0}
+    (tmp_path / "scene.json").write_text(json.dumps({**scene, "up_axis": "+y", "table": table}))
+    assert capture_background_parts(tmp_path, "state1", [0]) is None  # another frame

@@ -248,7 +248,7 @@ def summarise(results: dict[str, Any]) -> dict[str, Any]:
     shared = None
     for r in results.values():
         for k in ("photo", "reference"):
-            names = {n for n, v in (r[k].get("regions") or {}).items() if v is not None}
+            names = {name for name, v in (r[k].get("regions") or {}).items() if v is not None}
             shared = names if shared is None else shared & names
     if shared:  # per region, the reference's PSNR minus the photo world's, averaged over the scenes
         out["mean_region_gap_db"] = {
@@ -275,6 +275,7 @@ def merge(files: list[Path], out: Path) -> dict[str, Any]:
         raise ValueError("--merge needs at least one result file")
     scenes: dict[str, Any] = {}
     first: dict[str, Any] | None = None
+    cpus: set[int | None] = set()
     for f in files:
         try:
             doc = json.loads(Path(f).read_text())
@@ -284,6 +285,7 @@ def merge(files: list[Path], out: Path) -> dict[str, Any]:
                 f"{f}: not a benchmarks.photo_worlds result ({e}); pass the JSON files it wrote"
             ) from None
         config.pop("scenes", None)
+        cpus.add(config.pop("cpus", None))  # the machine's, not a setting: each scene keeps its machine
         if first is None:
             first = config
         elif config != first:
@@ -296,7 +298,12 @@ def merge(files: list[Path], out: Path) -> dict[str, Any]:
             scenes[name] = {**figures, "machine": figures.get("machine", doc.get("machine"))}
     assert first is not None
     result = {
-        "config": {**first, "scenes": list(scenes), "merged_from": [Path(f).name for f in files]},
+        "config": {
+            **first,
+            "scenes": list(scenes),
+            "merged_from": [Path(f).name for f in files],
+            "cpus": cpus.pop() if len(cpus) == 1 else None,
+        },  # fmt: skip
         "scenes": scenes,
         "summary": summarise(scenes),
         "targets": {"gap_db": TARGET_GAP_DB, "photos_to_world_min": TARGET_MINUTES, **TARGET_MOTIONS},

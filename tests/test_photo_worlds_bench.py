@@ -150,7 +150,7 @@ def _stored(path, scene, gap, minutes, cpu="AMD EPYC", **config):
 
 def test_merge_joins_the_scenes_of_several_runs(tmp_path, capsys):
     a = _stored(tmp_path / "a.json", "two_blocks", 1.5, 40.0)
-    b = _stored(tmp_path / "b.json", "five_small", 0.5, 30.0, cpu="other")
+    b = _stored(tmp_path / "b.json", "five_small", 0.5, 30.0, cpu="other", cpus=4)
     out = tmp_path / "all.json"
     assert main(["--merge", str(a), str(b), "--out", str(out)]) == 0
     r = json.loads(out.read_text())
@@ -163,6 +163,7 @@ def test_merge_joins_the_scenes_of_several_runs(tmp_path, capsys):
     assert s["mean_region_gap_db"] == {"floor": pytest.approx(2.0)}  # regions without a PSNR are left out
     # each scene keeps the machine that timed it; the whole names none when they differ
     assert r["scenes"]["five_small"]["machine"] == {"cpu": "other"} and r["machine"] is None
+    assert r["config"]["cpus"] is None  # the machines' CPU counts differ: not a setting, so not refused
     assert json.loads(capsys.readouterr().out)["mean_gap_db"] == pytest.approx(1.0)
 
 

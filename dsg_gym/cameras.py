@@ -11,7 +11,8 @@ centre of a ``W x H`` image is at ``(W/2, H/2)``.
 * :func:`orbit_eyes`: camera positions on rings around a point (look at it with :func:`look_at`, or with
   the torch one in batches).
 * :func:`intrinsics_from_fov`: ``K`` of a vertical field of view.
-* :func:`unproject`: pixels with depth back to world points.
+* :func:`unproject`: pixels with depth back to world points; :func:`depth_points` a whole depth map.
+* :func:`camera_centres`: where cameras are, from their world-to-camera matrices.
 """
 
 from __future__ import annotations
@@ -22,7 +23,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Cameras", "intrinsics_from_fov", "look_at", "orbit_eyes", "unproject"]
+__all__ = [
+    "Cameras",
+    "camera_centres",
+    "depth_points",
+    "intrinsics_from_fov",
+    "look_at",
+    "orbit_eyes",
+    "unproject",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,3 +134,21 @@ def unproject(u, v, depth, viewmats, Ks) -> np.ndarray:
     cam = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1)
     R, t = vm[..., :3, :3], vm[..., :3, 3]
     return np.einsum("...ji,...j->...i", R, cam - t)  # R^T (p - t)
+
+
+def depth_points(depth, viewmat, K) -> np.ndarray:
+    """World points ``[H, W, 3]`` float64 of every pixel centre of ``depth [H, W]`` (along the optical axis; a
+    pixel without depth, 0, lands on the camera centre) seen by ``viewmat [4, 4]``, ``K [3, 3]``."""
+    d = np.asarray(depth, dtype=np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"depth must be a map [H, W], got shape {d.shape}")
+    H, W = d.shape
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    return unproject(u + 0.5, v + 0.5, d, viewmat, K).reshape(H, W, 3)
+
+
+def camera_centres(viewmats) -> np.ndarray:
+    """World positions ``[..., 3]`` float64 of the cameras of world-to-camera ``viewmats [..., 4, 4]``:
+    ``-R^T t``."""
+    vm = np.asarray(viewmats, dtype=np.float64)
+    return -np.einsum("...ji,...j->...i", vm[..., :3, :3], vm[..., :3, 3])

@@ -7,7 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from dsg_gym.cameras import Cameras, intrinsics_from_fov, look_at, orbit_eyes, unproject
+from dsg_gym.cameras import (
+    Cameras,
+    camera_centres,
+    depth_points,
+    intrinsics_from_fov,
+    look_at,
+    orbit_eyes,
+    unproject,
+)
 
 
 def _to_camera(vm: np.ndarray, p) -> np.ndarray:
@@ -92,3 +100,27 @@ def test_unproject_inverts_the_projection():
     centre = -vms[0, :3, :3].T @ vms[0, :3, 3]
     p = unproject([K[0, 2]], [K[1, 2]], [2.0], vms[0], K)[0]
     np.testing.assert_allclose(p, centre + 2.0 * vms[0, 2, :3], atol=1e-12)
+
+
+def test_camera_centres_and_depth_points():
+    eyes = np.array([[1.0, 0.5, 0.8], [-0.7, 1.1, 0.4], [0.2, -1.3, 1.5]])
+    vms = np.stack([look_at(e, [0.1, -0.2, 0.0]) for e in eyes])
+    np.testing.assert_allclose(camera_centres(vms), eyes, atol=1e-12)
+    np.testing.assert_allclose(camera_centres(vms[1]), eyes[1], atol=1e-12)  # one camera
+    np.testing.assert_allclose(camera_centres(vms.reshape(3, 1, 4, 4)), eyes[:, None], atol=1e-12)
+    K = intrinsics_from_fov(55.0, 6, 4)
+    depth = np.arange(1.0, 25.0).reshape(4, 6) / 10
+    depth[2, 3] = 0.0
+    p = depth_points(depth, vms[0], K)
+    assert p.shape == (4, 6, 3) and p.dtype == np.float64
+    # every pixel centre back in its pixel at its depth; a pixel without depth on the camera centre
+    cam = p @ vms[0, :3, :3].T + vms[0, :3, 3]
+    np.testing.assert_allclose(cam[..., 2], depth, atol=1e-12)
+    ok = depth > 0
+    u = K[0, 0] * cam[..., 0][ok] / cam[..., 2][ok] + K[0, 2]
+    v = K[1, 1] * cam[..., 1][ok] / cam[..., 2][ok] + K[1, 2]
+    np.testing.assert_allclose(u, (np.nonzero(ok)[1] + 0.5), atol=1e-9)
+    np.testing.assert_allclose(v, (np.nonzero(ok)[0] + 0.5), atol=1e-9)
+    np.testing.assert_allclose(p[2, 3], eyes[0], atol=1e-12)
+    with pytest.raises(ValueError, match="depth must be a map"):
+        depth_points(depth[None], vms[0], K)

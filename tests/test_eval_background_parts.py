@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 
 from train_world.eval.background_parts import PARTS, background_parts, capture_background_parts
 from train_world.eval.regions import RegionErrors, combine, region_masks
@@ -95,10 +96,41 @@ def test_region_errors_split_the_background_by_part():
     assert acc.report()["background_parts"] is None
 
 
-def test_a_capture_without_a_table_or_up_axis_z_has_no_parts(tmp_path):
-    scene = {"format": "dsg-capture", "up_axis": "+z", "states": ["state1"]}
-    (tmp_path / "scene.json").write_text(json.dumps(scene))
-    assert capture_background_parts(tmp_path, "state1", [0]) is None  # no table
-    table = {"bounds": [[-0.4, -0.3, 0.0], [0.4, 0.3, 0.0]], "top_z": 0.0}
-    (tmp_path / "scene.json").write_text(json.dumps({**scene, "up_axis": "+y", "table": table}))
-    assert capture_background_parts(tmp_path, "state1", [0]) is None  # another frame
+def _capture(up="+z", table=True, depth=True):
+    """A loaded capture's fields that the split reads: one state of two views of :func:`_scene`, the eye 2
+    above the table top in the second, with two strips 0.0125 and 0.0175 above the top: on it only with the
+    tolerance of the median camera distance (about 1.5), not with that of the nearest (1) or farthest (2)."""
+    vm2 = VIEWMAT.copy()
+    vm2[:3, 3] = -R @ (2 * EYE)
+    d = _scene()
+    d[:, 22:26], d[:, 30:34] = 1 - 0.0125, 1 - 0.0175  # the eye 1 above the top, looking straight down
+    views = SimpleNamespace(
+        viewmats=torch.from_numpy(np.stack([VIEWMAT, vm2])).double(),
+        Ks=torch.from_numpy(np.stack([K, K])).double(),
+        depths=torch.from_numpy(np.stack([d, d + 1])).double() if depth else None,
+    )
+    bounds = np.array([[-0.3, -1.0, 0.0], [0.25, 1.0, 0.0]])
+    meta = {"up_axis": up, **({"table": {"bounds": bounds.tolist(), "top_z": 0.0}} if table else {})}
+    return SimpleNamespace(metadata=meta, table_bounds=bounds if table else None, states={"state1": views})
+
+
+def test_a_loaded_capture_is_split_with_its_cameras_distance():
+    cap = _capture()
+    parts = capture_background_parts(cap, "state1", [1, 0])
+    v = cap.states["state1"]
+    # the scale: the median distance of the two eyes (1 and 2 above the origin) to the table top's centre
+    scale = (np.hypot(0.025, 1.0) + np.hypot(0.025, 2.0)) / 2
+    for got, i in zip(parts, [1, 0], strict=True):
+        want = background_parts(v.depths[i].double().numpy(), v.viewmats[i].double().numpy(),
+                                v.Ks[i].double().numpy(), BOUNDS, 0.0, scale)  # fmt: skip
+        for part in PARTS:
+            np.testing.assert_array_equal(got[part], want[part])
+    near = parts[1]  # view 0, whose strips lie inside the table's bounds
+    assert near["floor"].any() and near["table_top"][:, 22:26].all() and not near["table_top"][:, 30:34].any()
+
+
+def test_a_capture_without_depth_a_table_or_up_axis_z_has_no_parts():
+    assert capture_background_parts(_capture(table=False), "state1", [0]) is None
+    assert capture_background_parts(_capture(up="+y"), "state1", [0]) is None
+    assert capture_background_parts(_capture(depth=False), "state1", [0]) is None
+    assert capture_background_parts(_capture(), "state2", [0]) is None  # a state it does not hold

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from _captures import tiny_capture
 
+from dsg_gym.cameras import camera_centres
 from train_world.single_state.data import load_training_data
 from train_world.single_state.init import (
     ROOM_DEPTHS,
     ROOM_SHARE,
     TABLE_SHARE,
     _pixels,
-    camera_centres,
     object_hull_points,
     points_from_depth,
     room_points,
@@ -119,7 +119,7 @@ def test_room_points_lie_on_background_rays_out_to_the_room(data):
     vm = d.viewmats[0].double().numpy()
     z = (P @ vm[:3, :3].T + vm[:3, 3])[:, 2]
     centre = np.array([box[:, 0].mean(), box[:, 1].mean(), box[0, 2]])
-    dist = np.linalg.norm(camera_centres(d.viewmats[:1])[0] - centre)
+    dist = np.linalg.norm(camera_centres(d.viewmats[:1].numpy())[0] - centre)
     near, far = ROOM_DEPTHS[0] * dist, ROOM_DEPTHS[1] * dist
     assert np.all((z >= near * (1 - 1e-9)) & (z <= far * (1 + 1e-9)))
     inv = (1 / z - 1 / far) / (1 / near - 1 / far)  # uniform in inverse depth: uniform on [0, 1]

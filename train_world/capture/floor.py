@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dsg_gym.cameras import camera_centres
+
 __all__ = ["FLOOR_BAND", "MIN_FLOOR_POINTS", "Floor", "fit_floor", "floor_depth"]
 
 #: half-width of the floor's inlier band, and the margin around the table's bounds, times ``ref``
@@ -80,8 +82,7 @@ def floor_depth(depth: np.ndarray, background: np.ndarray, viewmat: np.ndarray, 
     d = np.asarray(depth, np.float64)
     H, W = d.shape
     vm, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
-    R, t = vm[:3, :3], vm[:3, 3]
-    centre = -R.T @ t
+    R, centre = vm[:3, :3], camera_centres(vm)
     v, u = np.mgrid[0:H, 0:W] + 0.5
     ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1) @ R  # R^T x
     point = centre + ray * d[..., None]  # world points at depth d (camera z)

@@ -17,11 +17,14 @@ back-projected depth map), so a one-pixel rim along every depth jump counts as `
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dsg_gym.cameras import unproject
+from dsg_gym.cameras import camera_centres, depth_points
+
+if TYPE_CHECKING:
+    from train_world.capture.loader import Capture
 
 __all__ = [
     "BELOW_TOL",
@@ -53,9 +56,7 @@ def background_parts(
         raise ValueError(f"depth must be a map [H, W], got shape {d.shape}")
     if not scale > 0:
         raise ValueError(f"scale must be positive, got {scale}")
-    H, W = d.shape
-    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
-    p = unproject(x + 0.5, y + 0.5, d, viewmat, K).reshape(H, W, 3)
+    p = depth_points(d, viewmat, K)
     has = d > 0
     b = np.asarray(bounds, np.float64)
     tol = TABLE_TOL * scale
@@ -77,31 +78,24 @@ def background_parts(
 
 
 def capture_background_parts(
-    capture: str | Path, state: str, indices: Sequence[int], downscale: int = 1
+    capture: Capture, state: str, indices: Sequence[int]
 ) -> list[dict[str, np.ndarray]] | None:
-    """:func:`background_parts` of views ``indices`` of ``state`` of the capture folder ``capture`` (its depth maps
-    at ``downscale``), or None when it has no depth maps, no table with bounds, or a frame other than +z up."""
-    from train_world.capture import load_capture
-    from train_world.capture.files import read_json
-
-    scene = read_json(Path(capture) / "scene.json")
+    """:func:`background_parts` of views ``indices`` of ``state`` of the loaded ``capture``, or None when it
+    has no depth maps there, no table with bounds, or a frame other than +z up."""
+    scene = capture.metadata
     table = scene.get("table")
+    views = capture.states.get(state)
     if (
         str(scene.get("up_axis", "+z")).lstrip("+") != "z"
         or not isinstance(table, dict)
-        or "bounds" not in table
+        or capture.table_bounds is None
+        or views is None
+        or views.depths is None
     ):
         return None
-    try:
-        views = load_capture(capture, states=[state], downscale=downscale, load_masks=False).states[state]
-    except ValueError:
-        return None
-    if views.depths is None:
-        return None
-    bounds = np.asarray(table["bounds"], np.float64)
+    bounds = capture.table_bounds
     top = float(table.get("top_z", bounds[1, 2]))
     vm, Ks, depths = views.viewmats.double().numpy(), views.Ks.double().numpy(), views.depths.numpy()
     centre = np.r_[(bounds[0, :2] + bounds[1, :2]) / 2, top]
-    eyes = -np.einsum("vji,vj->vi", vm[:, :3, :3], vm[:, :3, 3])  # camera centres, -R^T t
-    scale = float(np.median(np.linalg.norm(eyes - centre, axis=1)))
+    scale = float(np.median(np.linalg.norm(camera_centres(vm) - centre, axis=1)))
     return [background_parts(depths[i], vm[i], Ks[i], bounds, top, scale) for i in indices]

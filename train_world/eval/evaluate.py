@@ -60,6 +60,7 @@ from dsg_gym.splat.layers import rasterize_layers
 from dsg_gym.world import World, load_world
 from train_world.capture import load_capture
 from train_world.capture.format import atomic_write_bytes, atomic_write_json, encode_png
+from train_world.capture.loader import Capture
 from train_world.eval.background_parts import capture_background_parts
 from train_world.eval.frames import FrameAlignment, motion_errors
 from train_world.eval.metrics import mask_iou, psnr, psnr_from_mse, ssim
@@ -149,6 +150,17 @@ def layer_mask(world: World) -> np.ndarray | None:
         return None
     n = world.background.num + sum(o.gaussians.num for o in world.objects.values())
     return np.arange(n) >= world.background.num
+
+
+def _depth_capture(capture: str | Path, states: list[str], downscale: int) -> Capture | None:
+    """``states`` of the ground truth ``capture`` at ``downscale``, without masks, for the region split's depth
+    maps, cameras and table; None when they cannot be loaded (the regions then go without that split)."""
+    try:
+        return load_capture(
+            capture, states=list(dict.fromkeys(states)), downscale=downscale, load_masks=False
+        )
+    except ValueError:
+        return None
 
 
 def _truth_downscale(capture: str | Path, size: tuple[int, int], trained: Any) -> int:
@@ -272,10 +284,12 @@ def evaluate(
     union = np.zeros(k + 1)
     regions = RegionErrors(world.object_names) if gt_cls is not None else None
     seen = parts = None
-    if regions is not None and trained and src.get("kind") == "capture":
-        seen = capture_coverage(capture, eval_state, views.indices, trained, held, downscale)
-    if regions is not None:
-        parts = capture_background_parts(capture, eval_state, views.indices, downscale)
+    if regions is not None:  # the truth's depth maps, cameras and table, loaded once for both
+        coverage = trained and src.get("kind") == "capture"
+        truth = _depth_capture(capture, [eval_state, *(trained if coverage else [])], downscale)
+        if truth is not None:
+            seen = capture_coverage(truth, eval_state, views.indices, trained, held) if coverage else None
+            parts = capture_background_parts(truth, eval_state, views.indices)
     for i in range(len(gt_imgs)):
         ours = np.clip(rgb[i], 0, 1)
         entry: dict[str, Any] = {

@@ -21,15 +21,17 @@ accuracy is lost. The regions partition every view, so the shares each sum to 1.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import ndimage
 
-from dsg_gym.cameras import unproject
+from dsg_gym.cameras import depth_points
 from train_world.eval.background_parts import PARTS
 from train_world.eval.metrics import psnr_from_mse
+
+if TYPE_CHECKING:
+    from train_world.capture.loader import Capture
 
 __all__ = [
     "OUTLINE_RADIUS",
@@ -66,8 +68,7 @@ def seen_by(
     within ``rel_tol`` of the point's depth (nothing in front of it). In float64."""
     d = np.asarray(depth, np.float64)
     H, W = d.shape
-    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
-    world = unproject(x + 0.5, y + 0.5, d, viewmat, K)
+    world = depth_points(d, viewmat, K).reshape(-1, 3)
     valid = d.reshape(-1) > 0
     seen = np.zeros(H * W, bool)
     for D, V, Kt in zip(
@@ -89,25 +90,18 @@ def seen_by(
 
 
 def capture_coverage(
-    capture: str | Path,
+    capture: Capture,
     state: str,
     indices: Sequence[int],
     training_states: Sequence[str],
     heldout: Mapping[str, Sequence[int]],
-    downscale: int = 1,
 ) -> np.ndarray | None:
-    """:func:`seen_by` of views ``indices`` of ``state`` against the training views of ``capture`` (every view of
-    ``training_states`` but the ``heldout`` indices of each): bool ``[len(indices), H, W]``; None when the capture
-    has no depth maps for them or lacks a training state."""
-    from train_world.capture import load_capture
-
+    """:func:`seen_by` of views ``indices`` of ``state`` of the loaded ``capture`` against its training views
+    (every view of ``training_states`` but the ``heldout`` indices of each): bool ``[len(indices), H, W]``;
+    None when the capture lacks one of those states or depth maps for them."""
+    views = capture.states
     names = list(dict.fromkeys([state, *training_states]))
-    try:
-        cap = load_capture(capture, states=names, downscale=downscale, load_masks=False)
-    except ValueError:
-        return None
-    views = cap.states
-    if any(views[n].depths is None for n in names):
+    if any(n not in views or views[n].depths is None for n in names):
         return None
     td, tv, tk = [], [], []
     for n in training_states:

@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from dsg_gym.cameras import camera_centres
 from dsg_gym.gaussians import GaussianSet
 from dsg_gym.geometry import axis_angle_to_quat, quat_multiply, quat_to_rotmat, rotmat_to_quat
 from dsg_gym.splat import rasterize, spherical_harmonics
@@ -140,7 +141,7 @@ def align_view(
     means_c = torch.from_numpy(np.asarray(g.means, dtype=np.float64) @ R.T + t)
     q_cam = rotmat_to_quat(torch.from_numpy(R.copy()))
     quats_c = quat_multiply(q_cam.expand(g.num, 4), torch.from_numpy(np.asarray(g.quats, dtype=np.float64)))
-    campos = torch.from_numpy(-R.T @ t).float()
+    campos = torch.from_numpy(camera_centres(vm)).float()
     means_w = torch.from_numpy(np.ascontiguousarray(g.means, dtype=np.float32))
     with torch.no_grad():
         sh = torch.from_numpy(np.ascontiguousarray(g.sh, dtype=np.float32))

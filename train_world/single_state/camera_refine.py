@@ -30,6 +30,7 @@ import math
 import numpy as np
 import torch
 
+from dsg_gym.cameras import camera_centres
 from dsg_gym.geometry import axis_angle_to_quat, quat_to_rotmat
 from train_world.capture.alignment import rotation_angle_deg
 
@@ -125,8 +126,7 @@ class CameraCorrections:
         new = self.viewmats().numpy()
         base = self.base.numpy()
         ang = rotation_angle_deg(new[:, :3, :3] @ np.swapaxes(base[:, :3, :3], 1, 2))
-        centre = lambda m: -np.einsum("vji,vj->vi", m[:, :3, :3], m[:, :3, 3])  # noqa: E731
-        dist = np.linalg.norm(centre(new) - centre(base), axis=1)
+        dist = np.linalg.norm(camera_centres(new) - camera_centres(base), axis=1)
         out = {
             "views": len(new),
             "rotation_deg_median": float(np.median(ang)) if len(ang) else 0.0,

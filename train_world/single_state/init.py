@@ -14,12 +14,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from dsg_gym.cameras import unproject
+from dsg_gym.cameras import camera_centres, unproject
 from train_world.single_state.field import SegmentedField
 from train_world.single_state.losses import knn_indices
 
 __all__ = [
-    "camera_centres",
     "carve_silhouettes",
     "initial_field",
     "object_hull_points",
@@ -40,15 +39,8 @@ TABLE_SHARE, HULL_CANDIDATES = 0.1, 6
 ROOM_SHARE, ROOM_DEPTHS = 0.5, (0.5, 4.0)
 
 
-def camera_centres(viewmats: torch.Tensor) -> np.ndarray:
-    """World positions ``[V,3]`` float64 of world-to-camera matrices."""
-    vm = viewmats.detach().double().numpy()
-    R, t = vm[:, :3, :3], vm[:, :3, 3]
-    return -np.einsum("vji,vj->vi", R, t)
-
-
 def scene_extent(viewmats: torch.Tensor) -> float:
-    c = camera_centres(viewmats)
+    c = camera_centres(viewmats.detach().numpy())
     return float(1.1 * max(np.linalg.norm(c - c.mean(0), axis=1).max(), 1e-6))
 
 
@@ -56,7 +48,7 @@ def scene_bounds_from_cameras(viewmats: torch.Tensor, Ks: torch.Tensor, width: i
     """``[[min], [max]]`` of a cube around the point closest to all optical axes, half-size the image
     half-width at that distance (what every camera sees around its look-at point)."""
     vm = viewmats.detach().double().numpy()
-    c = camera_centres(viewmats)
+    c = camera_centres(viewmats.detach().numpy())
     d = vm[:, 2, :3]  # optical axes in world (third row of R)
     A = np.zeros((3, 3))
     b = np.zeros(3)
@@ -201,7 +193,7 @@ def room_points(
     row, col = np.minimum(v.astype(np.int64), H - 1), np.minimum(u.astype(np.int64), W - 1)
     keep = np.ones(n, bool) if classes is None else classes.numpy()[view, row, col] == 0
     vm, K = viewmats.detach().double().numpy()[view], Ks.detach().double().numpy()[view]
-    dist = np.linalg.norm(camera_centres(viewmats)[view] - centre, axis=1)
+    dist = np.linalg.norm(camera_centres(viewmats.detach().numpy())[view] - centre, axis=1)
     near, far = ROOM_DEPTHS[0] * dist, ROOM_DEPTHS[1] * dist
     q = rng.random(n)
     z = 1.0 / ((1.0 - q) / near + q / far)

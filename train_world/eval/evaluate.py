@@ -286,7 +286,9 @@ def evaluate(
     seen = parts = None
     if regions is not None:  # the truth's depth maps, cameras and table, loaded once for both
         coverage = trained and src.get("kind") == "capture"
-        truth = _depth_capture(capture, [eval_state, *(trained if coverage else [])], downscale)
+        truth = _depth_capture(capture, [eval_state, *trained], downscale) if coverage else None
+        if truth is None:  # no coverage, or a truth without the training states: the parts still
+            truth = _depth_capture(capture, [eval_state], downscale)
         if truth is not None:
             seen = capture_coverage(truth, eval_state, views.indices, trained, held) if coverage else None
             parts = capture_background_parts(truth, eval_state, views.indices)

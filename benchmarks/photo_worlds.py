@@ -303,7 +303,7 @@ def merge(files: list[Path], out: Path) -> dict[str, Any]:
             "scenes": list(scenes),
             "merged_from": [Path(f).name for f in files],
             "cpus": cpus.pop() if len(cpus) == 1 else None,
-        },  # fmt: skip
+        },
         "scenes": scenes,
         "summary": summarise(scenes),
         "targets": {"gap_db": TARGET_GAP_DB, "photos_to_world_min": TARGET_MINUTES, **TARGET_MOTIONS},

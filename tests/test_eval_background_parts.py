@@ -109,9 +109,8 @@ def _capture(up="+z", table=True, depth=True):
         Ks=torch.from_numpy(np.stack([K, K])).double(),
         depths=torch.from_numpy(np.stack([d, d + 1])).double() if depth else None,
     )
-    bounds = np.array([[-0.3, -1.0, 0.0], [0.25, 1.0, 0.0]])
-    meta = {"up_axis": up, **({"table": {"bounds": bounds.tolist(), "top_z": 0.0}} if table else {})}
-    return SimpleNamespace(metadata=meta, table_bounds=bounds if table else None, states={"state1": views})
+    meta = {"up_axis": up, **({"table": {"bounds": BOUNDS.tolist(), "top_z": 0.0}} if table else {})}
+    return SimpleNamespace(metadata=meta, table_bounds=BOUNDS if table else None, states={"state1": views})
 
 
 def test_a_loaded_capture_is_split_with_its_cameras_distance():

@@ -48,7 +48,7 @@ def scene_bounds_from_cameras(viewmats: torch.Tensor, Ks: torch.Tensor, width: i
     """``[[min], [max]]`` of a cube around the point closest to all optical axes, half-size the image
     half-width at that distance (what every camera sees around its look-at point)."""
     vm = viewmats.detach().double().numpy()
-    c = camera_centres(viewmats.detach().numpy())
+    c = camera_centres(vm)
     d = vm[:, 2, :3]  # optical axes in world (third row of R)
     A = np.zeros((3, 3))
     b = np.zeros(3)
